@@ -1,0 +1,216 @@
+"""Fixed-point log-odds: the one representation behind every map operation.
+
+A cell of semantic layer *n* stores ``l = logit(P(m_n | z_1:t))`` (DESIGN.md section 1) as an
+``int16`` in units of ``1 / SCALE`` nat (``SCALE = 1000``: one unit is a thousandth of a nat).
+
+Why int16: the map is memory-bound (one add and one clamp per cell per ISM); int16 halves the
+traffic of float32.  Overflow is impossible by construction: the map state is clamped to
+``|l| <= MAX_STATE`` and every increment to ``|inc| <= MAX_STATE``, so ``state + inc`` stays
+within ``2 * MAX_STATE = 32000 < 32767`` before the clamp brings it back.
+
+Paper equations implemented here:
+
+* Eq. 1, the recursive Bayesian update, is a product of odds, i.e. a sum of log-odds:
+  ``l_t = clamp(l_{t-1} + logit(P(m | z_t, x_t)))`` (:func:`bayes_update`).
+* Eq. 6, super-Bayesian independent opinion pool ``P_B``: a sum of log-odds over layers
+  (:func:`fuse_bayes`); max pooling ``P_M``: a max over layers, because logit is monotone
+  (:func:`fuse_max`).
+* "forget" of the authors' original server (decay toward unknown): ``l *= factor``
+  (:func:`forget`).
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from functools import lru_cache
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+
+SCALE: Final = 1000.0
+"""Fixed-point units per nat of log-odds."""
+
+MAX_STATE: Final = 16000
+"""Largest magnitude of a stored cell or of one increment (16 nats: P within 1.1e-7 of 0/1)."""
+
+DTYPE: Final = np.int16
+
+DEFAULT_EPS0: Final = 0.001
+"""Default clamp: cells stay in [eps0, 1 - eps0] (logit(0.999) = 6.9 nats)."""
+
+MIN_EPS0: Final = 1.2e-7
+"""Smallest eps0 whose clamp still fits inside MAX_STATE."""
+
+FloatArray = npt.NDArray[np.floating]
+Fixed = npt.NDArray[np.int16]
+
+
+class Encoding(StrEnum):
+    """Cell encodings of ISMs on the wire and of sub-map replies."""
+
+    OCCUPANCY_I8 = "occupancy_i8"  # nav_msgs/OccupancyGrid: 0..100 percent, -1 unknown
+    PROB_U8 = "prob_u8"  # p = v / 255
+    PROB_F32 = "prob_f32"  # p in [0, 1]; NaN is not allowed
+    LOGODDS_I16 = "logodds_i16"  # this module's fixed point (reply only)
+
+
+ENCODING_DTYPES: Final[dict[Encoding, np.dtype]] = {
+    Encoding.OCCUPANCY_I8: np.dtype(np.int8),
+    Encoding.PROB_U8: np.dtype(np.uint8),
+    Encoding.PROB_F32: np.dtype(np.float32),
+    Encoding.LOGODDS_I16: np.dtype(np.int16),
+}
+
+OCCUPANCY_UNKNOWN: Final = -1
+
+
+def check_eps0(eps0: float) -> float:
+    """Return ``eps0`` if it is a usable clamp, else raise ``ValueError``."""
+    if not (MIN_EPS0 <= eps0 < 0.5):
+        raise ValueError(f"eps0 must lie in [{MIN_EPS0}, 0.5), got {eps0!r}")
+    return float(eps0)
+
+
+def logit(p: npt.ArrayLike) -> FloatArray:
+    """Natural log-odds ``log(p / (1 - p))`` in float64 (no clamping)."""
+    p = np.asarray(p, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.log(p) - np.log1p(-p)
+
+
+def sigmoid(l: npt.ArrayLike) -> FloatArray:
+    """Inverse of :func:`logit`, numerically stable for large magnitudes."""
+    l = np.asarray(l, dtype=np.float64)
+    return 0.5 * (1.0 + np.tanh(0.5 * l))
+
+
+def clamp_limits(eps0: float = DEFAULT_EPS0) -> tuple[int, int]:
+    """Fixed-point bounds ``(lo, hi)`` of the clamp ``P in [eps0, 1 - eps0]``."""
+    hi = int(round(float(logit(1.0 - check_eps0(eps0))) * SCALE))
+    hi = min(hi, MAX_STATE)
+    return -hi, hi
+
+
+def to_fixed(l: npt.ArrayLike) -> Fixed:
+    """Float nats -> int16 fixed point, rounded and limited to ``±MAX_STATE``."""
+    scaled = np.rint(np.asarray(l, dtype=np.float64) * SCALE)
+    return np.clip(scaled, -MAX_STATE, MAX_STATE).astype(DTYPE)
+
+
+def from_fixed(l: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """int fixed point -> float32 nats."""
+    return (np.asarray(l, dtype=np.float32) / np.float32(SCALE)).astype(np.float32)
+
+
+def prob_to_fixed(p: npt.ArrayLike, eps0: float = DEFAULT_EPS0) -> Fixed:
+    """Probability -> fixed log-odds, clamped to ``[eps0, 1 - eps0]``."""
+    p = np.clip(np.asarray(p, dtype=np.float64), eps0, 1.0 - eps0)
+    return to_fixed(logit(p))
+
+
+def fixed_to_prob(l: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """Fixed log-odds -> probability (float32)."""
+    return sigmoid(np.asarray(l, dtype=np.float64) / SCALE).astype(np.float32)
+
+
+@lru_cache(maxsize=64)
+def _lut(encoding: Encoding, eps0: float) -> Fixed:
+    codes = np.arange(256)
+    if encoding is Encoding.PROB_U8:
+        table = prob_to_fixed(codes / 255.0, eps0)
+    elif encoding is Encoding.OCCUPANCY_I8:
+        signed = codes.astype(np.uint8).view(np.int8).astype(np.int64)
+        valid = (signed >= 0) & (signed <= 100)
+        table = np.where(valid, prob_to_fixed(np.clip(signed, 0, 100) / 100.0, eps0), 0)
+        table = table.astype(DTYPE)
+    else:
+        raise ValueError(f"no lookup table for encoding {encoding!s}")
+    table.setflags(write=False)
+    return table
+
+
+def increment_lut(encoding: Encoding | str, eps0: float = DEFAULT_EPS0) -> Fixed:
+    """256-entry table: 8-bit ISM code (as its unsigned byte) -> fixed log-odds increment.
+
+    ``occupancy_i8``: 0..100 percent -> ``logit(clip(v / 100))``; -1 (unknown) and the invalid
+    codes 101..127, -128..-2 -> 0, i.e. the cell is left untouched (the codec rejects invalid
+    codes before they get here).  ``prob_u8``: ``logit(clip(v / 255))``.
+    """
+    return _lut(Encoding(encoding), check_eps0(eps0))
+
+
+def increments(
+    data: npt.NDArray, encoding: Encoding | str, eps0: float = DEFAULT_EPS0
+) -> Fixed:
+    """Turn an ISM's cells into fixed log-odds increments (0 = no information)."""
+    encoding = Encoding(encoding)
+    if encoding is Encoding.PROB_F32:
+        p = np.asarray(data, dtype=np.float32)
+        return prob_to_fixed(p, eps0)
+    if encoding is Encoding.LOGODDS_I16:
+        return np.clip(data, -MAX_STATE, MAX_STATE).astype(DTYPE)
+    codes = np.ascontiguousarray(data).view(np.uint8)
+    return increment_lut(encoding, eps0)[codes]
+
+
+def bayes_update(state: Fixed, inc: Fixed, limits: tuple[int, int]) -> None:
+    """Eq. 1 in log-odds, in place: ``state = clamp(state + inc)``.
+
+    ``state`` and ``inc`` are int16 arrays of one shape; ``limits`` from :func:`clamp_limits`.
+    Cells with ``inc == 0`` (unknown) are unchanged because they were already inside the clamp.
+    """
+    np.add(state, inc, out=state)
+    np.clip(state, limits[0], limits[1], out=state)
+
+
+def fuse_bayes(stack: Fixed) -> npt.NDArray[np.int32]:
+    """Eq. 6, super-Bayesian independent opinion pool over axis 0, as int32 fixed log-odds.
+
+    ``P_B = 1 / (1 + prod_n (1 - P_n) / P_n)`` is ``sigmoid(sum_n l_n)``.
+    """
+    return np.sum(stack, axis=0, dtype=np.int32)
+
+
+def fuse_max(stack: Fixed) -> Fixed:
+    """Eq. 6, max pooling ``P_M = max_n P_n`` over axis 0 (logit is monotone)."""
+    return np.max(stack, axis=0)
+
+
+def forget(state: Fixed, factor: float) -> None:
+    """Decay toward unknown in place: ``l *= factor`` with ``0 <= factor <= 1``."""
+    if not 0.0 <= factor <= 1.0:
+        raise ValueError(f"forget factor must lie in [0, 1], got {factor!r}")
+    np.copyto(state, np.rint(state * np.float32(factor)).astype(DTYPE))
+
+
+def encode_fixed(l: npt.ArrayLike, encoding: Encoding | str) -> npt.NDArray:
+    """Fixed log-odds (any int dtype) -> an output encoding for replies.
+
+    ``occupancy_i8`` writes -1 where the cell is exactly unknown (l == 0).
+    """
+    encoding = Encoding(encoding)
+    l = np.asarray(l)
+    if encoding is Encoding.LOGODDS_I16:
+        return np.clip(l, -32767, 32767).astype(np.int16)
+    p = fixed_to_prob(l)
+    if encoding is Encoding.PROB_F32:
+        return p
+    if encoding is Encoding.PROB_U8:
+        return np.rint(p * 255.0).astype(np.uint8)
+    occ = np.rint(p * 100.0).astype(np.int8)
+    occ[l == 0] = OCCUPANCY_UNKNOWN
+    return occ
+
+
+def decode_to_prob(data: npt.NDArray, encoding: Encoding | str) -> npt.NDArray[np.float32]:
+    """Any encoding -> probability (unknown occupancy cells -> 0.5)."""
+    encoding = Encoding(encoding)
+    if encoding is Encoding.PROB_F32:
+        return np.asarray(data, dtype=np.float32)
+    if encoding is Encoding.PROB_U8:
+        return (np.asarray(data, dtype=np.float32) / 255.0).astype(np.float32)
+    if encoding is Encoding.LOGODDS_I16:
+        return fixed_to_prob(data)
+    occ = np.asarray(data, dtype=np.float32) / 100.0
+    return np.where(np.asarray(data) == OCCUPANCY_UNKNOWN, 0.5, occ).astype(np.float32)
