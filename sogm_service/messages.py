@@ -1,0 +1,356 @@
+"""Every message on the wire, as pydantic models (DESIGN.md section 4).
+
+Payloads are msgpack maps of these models' fields (see :mod:`sogm_service.codec`).  Arrays
+travel as :class:`WireArray`: raw little-endian bytes plus dtype and shape.  ISMs carry their
+cells as raw bytes whose layout is fixed by ``width``, ``height`` and ``encoding`` so that a
+robot in any language can produce one without a numpy-like array type.
+
+Validation happens here, once, at the edge: a model that validates is safe for the core.  Each
+rejection carries a machine-readable ``code`` (the pydantic error type; our own validators raise
+:class:`pydantic_core.PydanticCustomError` with the codes listed in :data:`REJECT_CODES`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationInfo, field_validator
+from pydantic import model_validator as _model_validator
+from pydantic_core import PydanticCustomError
+
+from sogm_service.logodds import ENCODING_DTYPES, Encoding
+
+REJECT_CODES: dict[str, str] = {
+    "malformed_msgpack": "the payload is not valid msgpack",
+    "not_a_map": "the payload is not a msgpack map",
+    "missing_field": "a required field is missing",
+    "wrong_type": "a field has the wrong type",
+    "data_length": "the data length does not match width x height x encoding",
+    "non_finite": "a number is NaN or infinite",
+    "non_positive_resolution": "the resolution is not positive",
+    "out_of_range": "a probability or occupancy value is out of range",
+    "too_large": "the message exceeds the configured size limits",
+    "invalid_value": "a field has an invalid value",
+}
+
+IsmEncoding = Literal["occupancy_i8", "prob_u8", "prob_f32"]
+OutputEncoding = Literal["prob_u8", "prob_f32", "logodds_i16", "occupancy_i8"]
+InterpName = Literal["biodds", "bilinear", "nearest"]
+FusionMethod = Literal["bayes", "max"]
+
+StrictInt = Annotated[int, Strict()]
+StrictStr = Annotated[str, Strict()]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+DEFAULT_MAX_ISM_CELLS = 4096 * 4096
+
+
+class WireModel(BaseModel):
+    """Base of every wire message: immutable, unknown fields ignored (forward compatible)."""
+
+    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False)
+    schema_name: ClassVar[str] = ""
+
+
+class WireArray(WireModel):
+    """An n-d array as raw little-endian bytes, its dtype string and shape."""
+
+    dtype: Literal["uint8", "int8", "int16", "int32", "float32", "float64"]
+    shape: list[StrictInt]
+    data: bytes
+
+    @_model_validator(mode="after")
+    def _length_matches(self) -> WireArray:
+        if any(s < 0 for s in self.shape):
+            raise PydanticCustomError("invalid_value", "array shape has a negative size")
+        expected = math.prod(self.shape) * np.dtype(self.dtype).itemsize
+        if len(self.data) != expected:
+            raise PydanticCustomError(
+                "data_length", "array data has {got} bytes, shape and dtype need {expected}",
+                {"got": len(self.data), "expected": expected})
+        return self
+
+    @staticmethod
+    def from_array(a: npt.NDArray) -> WireArray:
+        le = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("<"))
+        return WireArray(dtype=str(a.dtype.name), shape=list(a.shape), data=le.tobytes())
+
+    def array(self) -> npt.NDArray:
+        return np.frombuffer(self.data, dtype=np.dtype(self.dtype).newbyteorder("<")) \
+            .astype(self.dtype).reshape(self.shape)
+
+
+class PoseModel(WireModel):
+    """A planar pose (m, rad) in the message's frame."""
+
+    x: FiniteFloat = 0.0
+    y: FiniteFloat = 0.0
+    yaw: FiniteFloat = 0.0
+
+
+class GeodeticFix(WireModel):
+    """WGS-84 latitude/longitude (deg) and altitude (m), as sensor_msgs/NavSatFix."""
+
+    latitude: Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
+    longitude: Annotated[float, Field(ge=-180, le=180, allow_inf_nan=False)]
+    altitude: FiniteFloat = 0.0
+
+
+class IsmMessage(WireModel):
+    """An inverse sensor model: one semantic class observed as a grid in its own pose.
+
+    ``layer`` may be omitted: the server then names the layer after the key's remainder
+    (``ism/robot1/laser/obstacle`` -> ``robot1/laser/obstacle``).
+    """
+
+    schema_name: ClassVar[str] = "ism"
+    layer: StrictStr | None = None
+    frame: StrictStr = "map"
+    stamp: FiniteFloat = 0.0
+    robot: StrictStr | None = None
+    resolution: float
+    origin: PoseModel = PoseModel()
+    width: StrictInt
+    height: StrictInt
+    encoding: IsmEncoding
+    data: bytes
+
+    @field_validator("resolution")
+    @classmethod
+    def _positive_resolution(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise PydanticCustomError("non_finite", "resolution is not finite")
+        if v <= 0:
+            raise PydanticCustomError("non_positive_resolution",
+                                      "resolution must be > 0, got {v}", {"v": v})
+        return v
+
+    @field_validator("width", "height")
+    @classmethod
+    def _positive_size(cls, v: int) -> int:
+        if v <= 0:
+            raise PydanticCustomError("invalid_value", "grid sizes must be > 0, got {v}",
+                                      {"v": v})
+        return v
+
+    @_model_validator(mode="after")
+    def _check_data(self, info: ValidationInfo) -> IsmMessage:
+        limits = info.context or {}
+        max_cells = int(limits.get("max_cells", DEFAULT_MAX_ISM_CELLS))
+        cells = self.width * self.height
+        if cells > max_cells:
+            raise PydanticCustomError("too_large", "{cells} cells exceed the limit of {limit}",
+                                      {"cells": cells, "limit": max_cells})
+        itemsize = ENCODING_DTYPES[Encoding(self.encoding)].itemsize
+        if len(self.data) != cells * itemsize:
+            raise PydanticCustomError(
+                "data_length",
+                "data has {got} bytes; {w}x{h} cells of {enc} need {expected}",
+                {"got": len(self.data), "w": self.width, "h": self.height,
+                 "enc": self.encoding, "expected": cells * itemsize})
+        _check_cell_values(self.array(), self.encoding)
+        return self
+
+    def array(self) -> npt.NDArray:
+        """The cells as a ``(height, width)`` array of the encoding's dtype (read-only view)."""
+        dtype = ENCODING_DTYPES[Encoding(self.encoding)].newbyteorder("<")
+        return np.frombuffer(self.data, dtype=dtype).reshape(self.height, self.width)
+
+
+def _check_cell_values(a: npt.NDArray, encoding: str) -> None:
+    if encoding == "prob_f32":
+        if not np.isfinite(a).all():
+            raise PydanticCustomError("non_finite", "prob_f32 data holds NaN or infinity")
+        if a.size and (a.min() < 0.0 or a.max() > 1.0):
+            raise PydanticCustomError("out_of_range", "prob_f32 data outside [0, 1]")
+    elif encoding == "occupancy_i8":
+        bad = (a < -1) | (a > 100)
+        if bad.any():
+            raise PydanticCustomError(
+                "out_of_range", "occupancy_i8 data holds {n} values outside 0..100 and -1",
+                {"n": int(bad.sum())})
+
+
+class PoseMessage(WireModel):
+    """A robot's pose, as the tile manager follows it."""
+
+    schema_name: ClassVar[str] = "pose"
+    robot: StrictStr | None = None
+    frame: StrictStr = "map"
+    stamp: FiniteFloat = 0.0
+    x: FiniteFloat
+    y: FiniteFloat
+    yaw: FiniteFloat = 0.0
+    fix: GeodeticFix | None = None
+
+
+class WindowRequest(BaseModel):
+    """A window of the map: centre pose, size (m), resolution (m), layers.
+
+    Requests come as selector parameters (strings) or a msgpack body, so they are validated in
+    lax mode; unknown parameters are refused so a typo never silently does something else.
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+    schema_name: ClassVar[str] = ""
+
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+    width: Annotated[float, Field(gt=0)] = 10.0
+    height: Annotated[float, Field(gt=0)] = 10.0
+    resolution: Annotated[float, Field(gt=0)] | None = None
+    layers: list[str] | None = None
+    interp: InterpName = "biodds"
+    encoding: OutputEncoding = "prob_u8"
+
+    @field_validator("layers", mode="before")
+    @classmethod
+    def _split_layers(cls, v: Any) -> Any:
+        if isinstance(v, str):
+            return [s for s in v.split(",") if s]
+        return v
+
+
+class SubmapRequest(WindowRequest):
+    schema_name: ClassVar[str] = "submap_request"
+
+
+class FusedRequest(WindowRequest):
+    schema_name: ClassVar[str] = "fused_request"
+    method: FusionMethod = "bayes"
+
+
+class SupercellRequest(WindowRequest):
+    """Window + SEVDS parameters (paper section III-D.2)."""
+
+    schema_name: ClassVar[str] = "supercell_request"
+    block_size: Annotated[int, Field(ge=2, le=64)] = 8
+    levels: Annotated[int, Field(ge=1, le=6)] = 3
+    bins: Annotated[int, Field(ge=2, le=64)] = 5
+    iterations: Annotated[int, Field(ge=1, le=50)] = 4
+    gamma: Annotated[float, Field(ge=0)] = 0.1
+    criterion: Literal["distribution", "energy"] = "distribution"
+    labels: bool = False
+
+
+class GridReply(WireModel):
+    """A sub-map: ``(N, H, W)`` cells of the named layers placed by ``origin``/``resolution``."""
+
+    schema_name: ClassVar[str] = "submap_reply"
+    map: str
+    frame: str
+    stamp: float
+    resolution: float
+    origin: PoseModel
+    width: int
+    height: int
+    layers: list[str]
+    encoding: OutputEncoding
+    interp: InterpName
+    data: WireArray
+
+
+class FusedReply(WireModel):
+    """One layer fused from several by Eq. 6 (``bayes``: P_B, ``max``: P_M)."""
+
+    schema_name: ClassVar[str] = "fused_reply"
+    map: str
+    frame: str
+    stamp: float
+    resolution: float
+    origin: PoseModel
+    width: int
+    height: int
+    layers: list[str]
+    method: FusionMethod
+    encoding: OutputEncoding
+    interp: InterpName
+    data: WireArray
+
+
+class SupercellNode(WireModel):
+    """One supercell of the topometric graph: the paper's triple (T_c, L_c, P_c), Eq. 11."""
+
+    id: int
+    x: float
+    y: float
+    area_cells: int
+    area_m2: float
+    neighbors: list[int]
+    logodds_sum: list[float]
+    mean_probability: list[float]
+
+
+class SupercellReply(WireModel):
+    schema_name: ClassVar[str] = "supercell_reply"
+    map: str
+    frame: str
+    stamp: float
+    resolution: float
+    origin: PoseModel
+    width: int
+    height: int
+    layers: list[str]
+    nodes: list[SupercellNode]
+    labels: WireArray | None = None
+
+
+class TileEvent(WireModel):
+    """A robot entered a new tile (the paper's Pose/NavSat/String tuple)."""
+
+    schema_name: ClassVar[str] = "tile_event"
+    map: str
+    robot: str
+    i: int
+    j: int
+    name: str
+    origin: PoseModel
+    datum: GeodeticFix | None = None
+    stamp: float
+
+
+class InfoReply(WireModel):
+    schema_name: ClassVar[str] = "info"
+    map: str
+    frame: str
+    server_id: str
+    resolution: float
+    tile_size: int
+    eps0: float
+    logodds_scale: float
+    layers: list[str]
+    tiles: list[tuple[int, int]]
+    bounds: tuple[float, float, float, float] | None
+    datum: GeodeticFix | None = None
+
+
+class StatsReply(WireModel):
+    schema_name: ClassVar[str] = "stats"
+    map: str
+    server_id: str
+    uptime_s: float
+    counters: dict[str, int]
+    rejected: dict[str, int]
+    queue_depth: int
+    isms_per_s: float
+    latency_ms: dict[str, dict[str, float]]
+    extra: dict[str, Any] = {}
+
+
+class ErrorReply(WireModel):
+    """What a failed query gets back (with ``reply_err``)."""
+
+    schema_name: ClassVar[str] = "error"
+    code: str
+    message: str
+    parameter: str | None = None
+
+
+SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
+    IsmMessage, PoseMessage, SubmapRequest, FusedRequest, SupercellRequest, GridReply,
+    FusedReply, SupercellReply, TileEvent, InfoReply, StatsReply, ErrorReply,
+)

@@ -1,0 +1,149 @@
+"""Resampling grids between geometries: nearest, bilinear and the paper's biodds (Eq. 3-5).
+
+Every function maps a grid given in one :class:`~sogm_service.geometry.GridGeometry` onto
+another (any relative yaw, scale and offset).  Destination cells whose source position lies
+outside the source grid are *unknown* (P = 0.5, log-odds 0), never zero.
+
+Biodds (paper Eq. 3-5) interpolates the amount of evidence rather than the probability.  With
+``f(x) = 0.5 tanh((x - 0.5) a) + 0.5`` and ``a = 2 atanh(1 - 2 eps0)``, Eq. 5 equals
+``sigmoid(bilinear(logit(clip(p, eps0, 1 - eps0))))`` exactly (DESIGN.md section 1: ``a``
+cancels; ``eps0`` moves it between nearest-like, eps0 -> 0, and bilinear-like, eps0 -> 0.5).
+So biodds is *bilinear interpolation of clamped log-odds*, which is what the map stores: the
+fast path is one OpenCV warp of the log-odds grid.
+
+OpenCV's warps quantise the sub-cell position to 1/32 cell (``INTER_BITS = 5``); that is far
+below a cell and is what the exact numpy path :func:`sample_bilinear` exists to check against.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import logodds
+from sogm_service.geometry import GridGeometry
+
+Interp = Literal["nearest", "bilinear", "biodds"]
+INTERPOLATIONS: tuple[Interp, ...] = ("biodds", "bilinear", "nearest")
+
+_CV_FLAGS = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR}
+
+
+def dst_to_src(src: GridGeometry, dst: GridGeometry) -> npt.NDArray[np.float64]:
+    """3x3 affine taking destination cell coordinates to source cell coordinates."""
+    return src.world_to_cell() @ dst.cell_to_world()
+
+
+def warp(
+    grid: npt.NDArray,
+    src: GridGeometry,
+    dst: GridGeometry,
+    interp: Literal["nearest", "linear"],
+    border_value: float,
+) -> npt.NDArray:
+    """Sample a 2-D ``grid`` (shape ``src.shape``) at every cell centre of ``dst``.
+
+    ``interp`` is ``nearest`` or ``linear`` (bilinear in the grid's own values); positions
+    outside the source get ``border_value``.  The dtype is kept (float32, int16, uint8).
+    """
+    if grid.shape != src.shape:
+        raise ValueError(f"grid shape {grid.shape} does not match geometry {src.shape}")
+    if dst.width == 0 or dst.height == 0:
+        return np.zeros(dst.shape, dtype=grid.dtype)
+    if src.width == 0 or src.height == 0:
+        return np.full(dst.shape, border_value, dtype=grid.dtype)
+    m = dst_to_src(src, dst)[:2]
+    return cv2.warpAffine(
+        grid, m, (dst.width, dst.height),
+        flags=_CV_FLAGS[interp] | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=border_value,
+    )
+
+
+def resample_logodds(
+    l: npt.NDArray[np.int16],
+    src: GridGeometry,
+    dst: GridGeometry,
+    interp: Interp = "biodds",
+) -> npt.NDArray[np.int16]:
+    """Resample a fixed-point log-odds grid (``int16``) into ``dst``; outside -> 0 (unknown).
+
+    * ``biodds``: bilinear on the (already clamped) log-odds - Eq. 5.
+    * ``bilinear``: bilinear on probabilities, converted back to log-odds.
+    * ``nearest``: nearest cell.
+    """
+    if interp == "biodds":
+        return warp(l, src, dst, "linear", 0.0)
+    if interp == "nearest":
+        return warp(l, src, dst, "nearest", 0.0)
+    if interp == "bilinear":
+        p = logodds.fixed_to_prob(l)
+        q = warp(p, src, dst, "linear", 0.5)
+        return logodds.to_fixed(logodds.logit(np.clip(q, 1e-12, 1 - 1e-12)))
+    raise ValueError(f"unknown interpolation {interp!r}; use one of {INTERPOLATIONS}")
+
+
+def resample_prob(
+    p: npt.NDArray,
+    src: GridGeometry,
+    dst: GridGeometry,
+    interp: Interp = "biodds",
+    eps0: float = logodds.DEFAULT_EPS0,
+) -> npt.NDArray[np.float32]:
+    """Resample a probability grid into ``dst``; outside the source -> 0.5 (unknown).
+
+    ``eps0`` is the clamp of biodds (paper Eq. 3); it is ignored by the other two.
+    """
+    p32 = np.asarray(p, dtype=np.float32)
+    if interp == "nearest":
+        return warp(p32, src, dst, "nearest", 0.5)
+    if interp == "bilinear":
+        return warp(p32, src, dst, "linear", 0.5)
+    if interp == "biodds":
+        clamped = np.clip(p32, eps0, 1.0 - eps0)
+        l = logodds.logit(clamped).astype(np.float32)
+        out = warp(l, src, dst, "linear", 0.0)
+        return logodds.sigmoid(out).astype(np.float32)
+    raise ValueError(f"unknown interpolation {interp!r}; use one of {INTERPOLATIONS}")
+
+
+def resample_stack(
+    stack: npt.NDArray[np.int16],
+    src: GridGeometry,
+    dst: GridGeometry,
+    interp: Interp = "biodds",
+) -> npt.NDArray[np.int16]:
+    """:func:`resample_logodds` for every layer of an ``(N, H, W)`` stack."""
+    out = np.zeros((stack.shape[0], *dst.shape), dtype=np.int16)
+    for n in range(stack.shape[0]):
+        out[n] = resample_logodds(stack[n], src, dst, interp)
+    return out
+
+
+def sample_bilinear(
+    grid: npt.NDArray, u: npt.NDArray, v: npt.NDArray, border_value: float
+) -> npt.NDArray[np.float64]:
+    """Exact bilinear interpolation of ``grid`` at continuous cell coordinates ``(u, v)``.
+
+    Cell centres sit on integers; a neighbour outside the grid contributes ``border_value``
+    (as OpenCV's constant border does).  The slow, exact counterpart of :func:`warp`.
+    """
+    g = np.asarray(grid, dtype=np.float64)
+    padded = np.pad(g, 1, constant_values=border_value)
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    u0 = np.floor(u)
+    v0 = np.floor(v)
+    fu = u - u0
+    fv = v - v0
+    # +1 for the padding; indices beyond the pad read the border value as well.
+    iu = np.clip(u0.astype(np.int64) + 1, 0, padded.shape[1] - 2)
+    iv = np.clip(v0.astype(np.int64) + 1, 0, padded.shape[0] - 2)
+    outside = (u0 < -1) | (v0 < -1) | (u0 > g.shape[1] - 1) | (v0 > g.shape[0] - 1)
+    top = padded[iv, iu] * (1 - fu) + padded[iv, iu + 1] * fu
+    bottom = padded[iv + 1, iu] * (1 - fu) + padded[iv + 1, iu + 1] * fu
+    out = top * (1 - fv) + bottom * fv
+    return np.where(outside, border_value, out)

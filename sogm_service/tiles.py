@@ -1,0 +1,306 @@
+"""The tiled semantic map: a stack of log-odds layers kept in tiles of a fixed lattice.
+
+DESIGN.md section 3: tile ``(i, j)`` holds all layers as one ``(N, T, T)`` int16 array of
+fixed-point log-odds (:mod:`sogm_service.logodds`); a layer is added when its first ISM
+arrives; tiles are created on first write.  Writing an ISM resamples it straight into each tile
+it overlaps (no map-sized intermediate), so the cost is proportional to the ISM's footprint.
+
+This module is pure (no I/O): persistence and the memory budget are the caller's business
+through two hooks, ``loader`` (bring back a tile that is not resident) and the LRU order of
+:meth:`TiledMap.least_recently_used`.  Methods are not thread-safe; the server serialises
+mutation and reads with its own lock.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import logodds
+from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.resample import Interp, resample_logodds, resample_stack
+
+TileIndex = tuple[int, int]
+Loader = Callable[[int, int], "tuple[list[str], npt.NDArray[np.int16], float] | None"]
+
+_ALIGN_TOL = 1e-6
+
+
+@dataclass
+class Tile:
+    """One tile: its layers (``(n, T, T)`` int16, n <= the map's layer count) and bookkeeping."""
+
+    index: TileIndex
+    data: npt.NDArray[np.int16]
+    stamp: float = 0.0
+    version: int = 0
+    saved_version: int = -1
+    last_used: float = field(default_factory=time.monotonic)
+
+    @property
+    def dirty(self) -> bool:
+        return self.version != self.saved_version
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.data.nbytes)
+
+
+class TiledMap:
+    """Semantic layers on a tile lattice, fused with Eq. 1 and sampled with Eq. 3-5."""
+
+    def __init__(self, name: str, frame: str, lattice: TileLattice,
+                 eps0: float = logodds.DEFAULT_EPS0, loader: Loader | None = None) -> None:
+        self.name = name
+        self.frame = frame
+        self.lattice = lattice
+        self.eps0 = logodds.check_eps0(eps0)
+        self.limits = logodds.clamp_limits(eps0)
+        self.layers: list[str] = []
+        self._layer_index: dict[str, int] = {}
+        self.tiles: OrderedDict[TileIndex, Tile] = OrderedDict()
+        self.stored: set[TileIndex] = set()
+        self.loader = loader
+
+    # -- layers ---------------------------------------------------------------------------
+    def layer_id(self, layer: str, create: bool = False) -> int:
+        """Index of ``layer`` in every tile's stack; ``create`` adds it when it is new."""
+        idx = self._layer_index.get(layer)
+        if idx is None:
+            if not create:
+                raise KeyError(layer)
+            idx = len(self.layers)
+            self.layers.append(layer)
+            self._layer_index[layer] = idx
+        return idx
+
+    def adopt_layers(self, names: Iterable[str]) -> list[int]:
+        """Map a stored tile's layer names onto this map's layer indices (adding new ones)."""
+        return [self.layer_id(n, create=True) for n in names]
+
+    # -- tiles ----------------------------------------------------------------------------
+    @property
+    def tile_size(self) -> int:
+        return self.lattice.tile_size
+
+    def known_tiles(self) -> set[TileIndex]:
+        return set(self.tiles) | self.stored
+
+    def resident_bytes(self) -> int:
+        return sum(t.nbytes for t in self.tiles.values())
+
+    def get_tile(self, index: TileIndex, create: bool = False) -> Tile | None:
+        """The tile at ``index``, loading it back if it was evicted; ``create`` makes it."""
+        tile = self.tiles.get(index)
+        if tile is None and index in self.stored and self.loader is not None:
+            tile = self._load(index)
+        if tile is None and create:
+            t = self.tile_size
+            tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16))
+            self.tiles[index] = tile
+        if tile is not None:
+            tile.last_used = time.monotonic()
+            self.tiles.move_to_end(index)
+        return tile
+
+    def _load(self, index: TileIndex) -> Tile | None:
+        assert self.loader is not None
+        loaded = self.loader(*index)
+        if loaded is None:
+            self.stored.discard(index)
+            return None
+        names, stack, stamp = loaded
+        ids = self.adopt_layers(names)
+        t = self.tile_size
+        data = np.zeros((len(self.layers), t, t), dtype=np.int16)
+        data[ids] = stack
+        tile = Tile(index, data, stamp=stamp, version=0, saved_version=0)
+        self.tiles[index] = tile
+        return tile
+
+    def insert_tile(self, index: TileIndex, names: list[str], stack: npt.NDArray[np.int16],
+                    stamp: float, saved: bool) -> Tile:
+        """Put a whole tile in place (from a store or a replica), replacing what was there."""
+        ids = self.adopt_layers(names)
+        t = self.tile_size
+        if stack.shape != (len(names), t, t):
+            raise ValueError(f"tile stack shape {stack.shape} != {(len(names), t, t)}")
+        data = np.zeros((len(self.layers), t, t), dtype=np.int16)
+        data[ids] = np.clip(stack, self.limits[0], self.limits[1])
+        tile = Tile(index, data, stamp=stamp, version=1, saved_version=1 if saved else 0)
+        self.tiles[index] = tile
+        self.tiles.move_to_end(index)
+        return tile
+
+    def evict(self, index: TileIndex) -> Tile | None:
+        """Drop a resident tile from memory (the caller made sure it is stored)."""
+        tile = self.tiles.pop(index, None)
+        if tile is not None:
+            self.stored.add(index)
+        return tile
+
+    def least_recently_used(self) -> list[TileIndex]:
+        return list(self.tiles)
+
+    def tile_layers(self, tile: Tile) -> tuple[list[str], npt.NDArray[np.int16]]:
+        """``(layer names, (n, T, T) stack)`` of a tile, its layers padded to the map's."""
+        self._grow(tile, len(self.layers) - 1)
+        return list(self.layers), tile.data
+
+    def _grow(self, tile: Tile, layer: int) -> None:
+        have = tile.data.shape[0]
+        if layer >= have:
+            t = self.tile_size
+            extra = np.zeros((len(self.layers) - have, t, t), dtype=np.int16)
+            tile.data = np.concatenate([tile.data, extra], axis=0)
+
+    # -- writing --------------------------------------------------------------------------
+    def fuse(self, layer: str, inc: npt.NDArray[np.int16], geometry: GridGeometry,
+             interp: Interp = "biodds", stamp: float = 0.0) -> list[TileIndex]:
+        """Eq. 1: fuse fixed log-odds increments given in ``geometry`` into ``layer``.
+
+        The increments are resampled into every tile the ISM overlaps (``interp``, outside the
+        ISM -> 0, i.e. untouched) and added with the clamp.  Returns the tiles written.
+        """
+        lid = self.layer_id(layer, create=True)
+        touched = []
+        for index in self.lattice.tiles_overlapping(geometry):
+            block = self._footprint(index, geometry)
+            if block is None:
+                continue
+            u0, v0, w, h = block
+            sub = self._tile_geometry(index).subgrid(u0, v0, w, h)
+            patch = _aligned_slice(inc, geometry, sub)
+            if patch is None:
+                patch = resample_logodds(inc, geometry, sub, interp)
+            tile = self.get_tile(index)
+            if tile is None:
+                if not patch.any():
+                    continue  # an ISM of pure unknown creates no tile
+                tile = self.get_tile(index, create=True)
+                assert tile is not None
+            self._grow(tile, lid)
+            logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch, self.limits)
+            tile.version += 1
+            tile.stamp = max(tile.stamp, stamp)
+            touched.append(index)
+        return touched
+
+    def _tile_geometry(self, index: TileIndex) -> GridGeometry:
+        return self.lattice.tile_geometry(*index)
+
+    def _footprint(self, index: TileIndex,
+                   geometry: GridGeometry) -> tuple[int, int, int, int] | None:
+        """Cell block ``(u0, v0, w, h)`` of tile ``index`` that ``geometry`` may cover."""
+        span, res = self.lattice.span, self.lattice.resolution
+        corners = geometry.corners()
+        u = (corners[:, 0] - index[0] * span) / res
+        v = (corners[:, 1] - index[1] * span) / res
+        t = self.tile_size
+        u0 = max(0, math.floor(u.min() + _ALIGN_TOL))
+        v0 = max(0, math.floor(v.min() + _ALIGN_TOL))
+        u1 = min(t, math.ceil(u.max() - _ALIGN_TOL))
+        v1 = min(t, math.ceil(v.max() - _ALIGN_TOL))
+        if u1 <= u0 or v1 <= v0:
+            return None
+        return u0, v0, u1 - u0, v1 - v0
+
+    # -- reading --------------------------------------------------------------------------
+    def mosaic(self, box: tuple[int, int, int, int],
+               layer_ids: list[int]) -> npt.NDArray[np.int16]:
+        """``(len(layer_ids), h, w)`` log-odds of the map-cell box ``(c0, r0, w, h)``."""
+        c0, r0, w, h = box
+        t = self.tile_size
+        out = np.zeros((len(layer_ids), h, w), dtype=np.int16)
+        for j in range(r0 // t, (r0 + h - 1) // t + 1):
+            for i in range(c0 // t, (c0 + w - 1) // t + 1):
+                tile = self.tiles.get((i, j))
+                if tile is None and (i, j) in self.stored:
+                    tile = self.get_tile((i, j))
+                if tile is None:
+                    continue
+                tile.last_used = time.monotonic()
+                self._copy_block(tile, (i, j), box, layer_ids, out)
+        return out
+
+    def _copy_block(self, tile: Tile, index: TileIndex, box: tuple[int, int, int, int],
+                    layer_ids: list[int], out: npt.NDArray[np.int16]) -> None:
+        c0, r0, w, h = box
+        t = self.tile_size
+        tc, tr = index[0] * t, index[1] * t
+        a0, a1 = max(c0, tc), min(c0 + w, tc + t)
+        b0, b1 = max(r0, tr), min(r0 + h, tr + t)
+        for k, lid in enumerate(layer_ids):
+            if lid < tile.data.shape[0]:
+                out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = \
+                    tile.data[lid, b0 - tr:b1 - tr, a0 - tc:a1 - tc]
+
+    def sample(self, window: GridGeometry, layers: list[str],
+               interp: Interp = "biodds") -> npt.NDArray[np.int16]:
+        """``(len(layers), H, W)`` fixed log-odds of the map resampled into ``window``.
+
+        Unknown area (no tile, or outside every ISM so far) is 0.  Raises ``KeyError`` for a
+        layer the map does not have.
+        """
+        ids = [self.layer_id(n) for n in layers]
+        res = self.lattice.resolution
+        xmin, ymin, xmax, ymax = window.bounds()
+        # One cell of margin each side so that bilinear reads real neighbours at the edge.
+        c0, r0 = math.floor(xmin / res) - 1, math.floor(ymin / res) - 1
+        c1, r1 = math.ceil(xmax / res) + 1, math.ceil(ymax / res) + 1
+        box = (c0, r0, c1 - c0, r1 - r0)
+        src = self.mosaic(box, ids)
+        src_geom = GridGeometry(res, box[2], box[3], Pose2D(c0 * res, r0 * res, 0.0))
+        if _is_aligned(src_geom, window):
+            du, dv = _cell_offset(src_geom, window)
+            return np.ascontiguousarray(src[:, dv:dv + window.height, du:du + window.width])
+        return resample_stack(src, src_geom, window, interp)
+
+    def bounds(self) -> tuple[float, float, float, float] | None:
+        """Metric box ``(xmin, ymin, xmax, ymax)`` of every tile the map has."""
+        known = self.known_tiles()
+        if not known:
+            return None
+        span = self.lattice.span
+        ii = [i for i, _ in known]
+        jj = [j for _, j in known]
+        return (min(ii) * span, min(jj) * span, (max(ii) + 1) * span, (max(jj) + 1) * span)
+
+
+def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:
+    """Same resolution and heading, and ``dst`` starts on a cell corner of ``src``."""
+    if abs(src.resolution - dst.resolution) > _ALIGN_TOL * src.resolution:
+        return False
+    dyaw = (dst.origin.yaw - src.origin.yaw + math.pi) % (2 * math.pi) - math.pi
+    if abs(dyaw) > 1e-9:
+        return False
+    m = src.world_to_cell() @ dst.cell_to_world()
+    return bool(np.all(np.abs(m[:2, 2] - np.rint(m[:2, 2])) < _ALIGN_TOL))
+
+
+def _cell_offset(src: GridGeometry, dst: GridGeometry) -> tuple[int, int]:
+    m = src.world_to_cell() @ dst.cell_to_world()
+    return int(np.rint(m[0, 2])), int(np.rint(m[1, 2]))
+
+
+def _aligned_slice(inc: npt.NDArray[np.int16], src: GridGeometry,
+                   dst: GridGeometry) -> npt.NDArray[np.int16] | None:
+    """Fast path of :meth:`TiledMap.fuse`: a plain slice when no resampling is needed."""
+    if not _is_aligned(src, dst):
+        return None
+    du, dv = _cell_offset(src, dst)
+    if du >= 0 and dv >= 0 and du + dst.width <= src.width and dv + dst.height <= src.height:
+        return inc[dv:dv + dst.height, du:du + dst.width]  # a view: no copy on the hot path
+    out = np.zeros(dst.shape, dtype=np.int16)
+    u0, v0 = max(0, -du), max(0, -dv)
+    u1 = min(dst.width, src.width - du)
+    v1 = min(dst.height, src.height - dv)
+    if u1 > u0 and v1 > v0:
+        out[v0:v1, u0:u1] = inc[v0 + dv:v1 + dv, u0 + du:u1 + du]
+    return out
