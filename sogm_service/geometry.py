@@ -43,7 +43,7 @@ class Pose2D:
         return Pose2D.from_matrix(self.matrix() @ other.matrix())
 
     def inverse(self) -> Pose2D:
-        return Pose2D.from_matrix(np.linalg.inv(self.matrix()))
+        return Pose2D.from_matrix(np.asarray(np.linalg.inv(self.matrix()), dtype=np.float64))
 
     def transform_points(self, xy: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Map ``(..., 2)`` points from this pose's frame to the parent frame."""
@@ -86,7 +86,7 @@ class GridGeometry:
 
     def world_to_cell(self) -> Matrix3:
         """3x3 affine: parent-frame metres -> continuous cell coordinates."""
-        return np.linalg.inv(self.cell_to_world())
+        return np.asarray(np.linalg.inv(self.cell_to_world()), dtype=np.float64)
 
     def cell_centers(self) -> npt.NDArray[np.float64]:
         """``(height, width, 2)`` parent-frame coordinates of every cell centre."""

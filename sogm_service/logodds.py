@@ -87,7 +87,7 @@ def sigmoid(l: npt.ArrayLike) -> FloatArray:
 
 def clamp_limits(eps0: float = DEFAULT_EPS0) -> tuple[int, int]:
     """Fixed-point bounds ``(lo, hi)`` of the clamp ``P in [eps0, 1 - eps0]``."""
-    hi = int(round(float(logit(1.0 - check_eps0(eps0))) * SCALE))
+    hi = round(float(logit(1.0 - check_eps0(eps0))) * SCALE)
     hi = min(hi, MAX_STATE)
     return -hi, hi
 
