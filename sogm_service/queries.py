@@ -1,0 +1,120 @@
+"""Query handling of the map server, pure: request model -> core sampling -> reply model.
+
+Windows are validated before any work: a request larger than the configured cell limit is
+refused, never attempted.  Every refusal is a :class:`QueryError` carrying a machine-readable
+code, a sentence, and the offending parameter.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import logodds
+from sogm_service.codec import DecodeError, unpack, validate
+from sogm_service.geometry import GridGeometry, window_geometry
+from sogm_service.messages import (
+    FusedReply,
+    FusedRequest,
+    GridReply,
+    PoseModel,
+    SubmapRequest,
+    WindowRequest,
+    WireArray,
+)
+from sogm_service.tiles import TiledMap
+
+R = TypeVar("R", bound=WindowRequest)
+
+
+class QueryError(ValueError):
+    """A query that cannot be answered: ``code``, a sentence, and the parameter at fault."""
+
+    def __init__(self, code: str, message: str, parameter: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.parameter = parameter
+
+
+def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = None) -> R:
+    """Selector parameters (strings) and an optional msgpack map body -> a request model.
+
+    Parameters given in the selector win over the body's.
+    """
+    merged: dict[str, Any] = {}
+    try:
+        if body:
+            obj = unpack(body)
+            if not isinstance(obj, dict):
+                raise QueryError("bad_parameter", "the query body must be a msgpack map")
+            merged.update(obj)
+        merged.update(params)
+        return validate(cls, merged)
+    except DecodeError as exc:
+        raise QueryError("bad_parameter", exc.message, exc.parameter) from None
+
+
+def window_of(req: WindowRequest, tiled: TiledMap, limit_cells: int,
+              n_layers: int) -> GridGeometry:
+    """The request's window geometry, refused when it is larger than ``limit_cells``."""
+    res = req.resolution or tiled.lattice.resolution
+    cells = math.ceil(req.width / res) * math.ceil(req.height / res)
+    if cells * max(n_layers, 1) > limit_cells:
+        raise QueryError("window_too_large",
+                         f"{cells} cells x {n_layers} layers exceed the limit of {limit_cells}"
+                         " cells; ask for a smaller window or a coarser resolution", "width")
+    return window_geometry(req.x, req.y, req.yaw, req.width, req.height, res)
+
+
+def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[str]:
+    """The requested layers (default: all), each checked to exist."""
+    if not wanted:
+        return list(tiled.layers)
+    unknown = [n for n in wanted if n not in tiled.layers]
+    if unknown:
+        raise QueryError("unknown_layer", f"unknown layer(s) {unknown}; the map has "
+                                          f"{tiled.layers}", "layers")
+    return list(wanted)
+
+
+def _pose(g: GridGeometry) -> PoseModel:
+    return PoseModel(x=g.origin.x, y=g.origin.y, yaw=g.origin.yaw)
+
+
+def submap(tiled: TiledMap, req: SubmapRequest, limit_cells: int, stamp: float) -> GridReply:
+    """The ``submap`` queryable: the chosen layers resampled into the requested window."""
+    layers = resolve_layers(tiled, req.layers)
+    window = window_of(req, tiled, limit_cells, len(layers))
+    stack = tiled.sample(window, layers, req.interp)
+    data = logodds.encode_fixed(stack, req.encoding)
+    return GridReply(map=tiled.name, frame=tiled.frame, stamp=stamp,
+                     resolution=window.resolution, origin=_pose(window), width=window.width,
+                     height=window.height, layers=layers, encoding=req.encoding,
+                     interp=req.interp, data=WireArray.from_array(data))
+
+
+def fuse_layers(stack: npt.NDArray[np.int16], method: str) -> npt.NDArray[np.int32]:
+    """Eq. 6 over axis 0: ``bayes`` (P_B, sum of log-odds) or ``max`` (P_M)."""
+    if method == "bayes":
+        return logodds.fuse_bayes(stack)
+    return logodds.fuse_max(stack).astype(np.int32)
+
+
+def fused(tiled: TiledMap, req: FusedRequest, limit_cells: int, stamp: float) -> FusedReply:
+    """The ``fused`` queryable: one layer pooled from the chosen ones by Eq. 6."""
+    layers = resolve_layers(tiled, req.layers)
+    if not layers:
+        raise QueryError("unknown_layer", "the map has no layers yet", "layers")
+    window = window_of(req, tiled, limit_cells, len(layers))
+    stack = tiled.sample(window, layers, req.interp)
+    data = logodds.encode_fixed(fuse_layers(stack, req.method), req.encoding)
+    return FusedReply(map=tiled.name, frame=tiled.frame, stamp=stamp,
+                      resolution=window.resolution, origin=_pose(window), width=window.width,
+                      height=window.height, layers=layers, method=req.method,
+                      encoding=req.encoding, interp=req.interp,
+                      data=WireArray.from_array(data))

@@ -1,0 +1,67 @@
+"""Counters, rates and latency percentiles of a running server (pure, thread-safe)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+
+import numpy as np
+
+_LATENCY_WINDOW = 2048
+_RATE_WINDOW_S = 10.0
+
+
+class Stats:
+    """What ``<prefix>/<map>/stats`` reports: counters, rejections per reason, latencies."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.started = time.monotonic()
+        self.counters: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+        self._latency: dict[str, deque[float]] = {}
+        self._fused_times: deque[float] = deque()
+
+    def count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[name] += n
+
+    def reject(self, reason: str) -> None:
+        with self._lock:
+            self.rejected[reason] += 1
+            self.counters["isms_rejected"] += 1
+
+    def fused(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.counters["isms_fused"] += 1
+            self._fused_times.append(now)
+            while self._fused_times and now - self._fused_times[0] > _RATE_WINDOW_S:
+                self._fused_times.popleft()
+
+    def latency(self, name: str, seconds: float) -> None:
+        with self._lock:
+            self._latency.setdefault(name, deque(maxlen=_LATENCY_WINDOW)).append(seconds)
+
+    def isms_per_s(self) -> float:
+        now = time.monotonic()
+        with self._lock:
+            recent = [t for t in self._fused_times if now - t <= _RATE_WINDOW_S]
+        span = min(_RATE_WINDOW_S, max(now - self.started, 1e-3))
+        return len(recent) / span
+
+    def percentiles(self) -> dict[str, dict[str, float]]:
+        """Per operation: count, median, p90, p99 and max, in milliseconds."""
+        with self._lock:
+            snapshot = {k: np.array(v) * 1e3 for k, v in self._latency.items() if v}
+        return {
+            k: {"count": float(v.size), "p50": float(np.percentile(v, 50)),
+                "p90": float(np.percentile(v, 90)), "p99": float(np.percentile(v, 99)),
+                "max": float(v.max())}
+            for k, v in snapshot.items()
+        }
+
+    def snapshot(self) -> tuple[dict[str, int], dict[str, int]]:
+        with self._lock:
+            return dict(self.counters), dict(self.rejected)

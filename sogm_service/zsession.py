@@ -1,0 +1,48 @@
+"""Opening Zenoh sessions from :class:`~sogm_service.config.ZenohSettings` (service layer)."""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import zenoh
+
+from sogm_service.config import ZenohSettings
+
+
+def make_config(settings: ZenohSettings) -> zenoh.Config:
+    """A ``zenoh.Config``: from the JSON5 file when given, then our fields on top."""
+    if settings.config_file is not None:
+        config = zenoh.Config.from_file(str(settings.config_file))
+    else:
+        config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(settings.mode))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    if settings.listen:
+        config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.connect:
+        config.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    return config
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a session; the caller must ``close()`` it (an open session keeps the process alive)."""
+    return zenoh.open(make_config(settings))
+
+
+def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
+    """A ``tcp/<host>:<port>`` endpoint on a port the OS just reported free (tests, demo)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        port = s.getsockname()[1]
+    return f"tcp/{host}:{port}"
+
+
+def loopback_settings(*, listen: str | None = None, connect: str | None = None,
+                      mode: str = "peer") -> ZenohSettings:
+    """Settings for a session on 127.0.0.1 only, multicast scouting off."""
+    return ZenohSettings.model_validate({
+        "mode": mode,
+        "listen": [listen] if listen else [],
+        "connect": [connect] if connect else [],
+    })
