@@ -1,11 +1,306 @@
-"""The ``sogm-service`` command (placeholder: subcommands are added as they land)."""
+"""The ``sogm-service`` command.
+
+Heavy modules (zenoh, numba kernels, the simulator) are imported only by the subcommand that
+needs them, so ``serve`` starts fast.  Subcommands owned by other modules (``tiles``, ``eval``)
+get the rest of the command line and build their own parser.
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+# name -> (module, function taking argv and returning an exit code, help)
+_DELEGATED: dict[str, tuple[str, str, str]] = {
+    "tiles": ("sogm_service.tiletool", "main", "list, export and import stored tiles"),
+    "eval": ("sogm_service.evaluation", "main",
+             "the paper's evaluation: eval supercells (SEVDS vs SEEDS/SLIC/SLICO/LSC)"),
+    "demo": ("sogm_service.demo", "main",
+             "embedded demo: a server and a simulated fleet on 127.0.0.1"),
+    "replay": ("sogm_service.replay", "main", "replay a CARMEN laser log into a map"),
+    "bench": ("sogm_service.bench", "main", "the performance suite"),
+}
+
+
+def _window_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--x", type=float, default=0.0, help="window centre x (m)")
+    p.add_argument("--y", type=float, default=0.0, help="window centre y (m)")
+    p.add_argument("--yaw", type=float, default=0.0, help="window heading (rad)")
+    p.add_argument("--width", type=float, default=10.0, help="window width (m)")
+    p.add_argument("--height", type=float, default=10.0, help="window height (m)")
+    p.add_argument("--resolution", type=float, default=None, help="cell size (m); map's")
+    p.add_argument("--layers", default=None, help="comma-separated layers (default all)")
+    p.add_argument("--interp", default="biodds", choices=["biodds", "bilinear", "nearest"])
+
+
+def _connection_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447",
+                   help="Zenoh endpoint of the server or a router (default %(default)s)")
+    p.add_argument("--map", default="default", help="map name (default %(default)s)")
+    p.add_argument("--prefix", default="sogm", help="key prefix (default %(default)s)")
+    p.add_argument("--timeout", type=float, default=5.0, help="query timeout (s)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sogm-service", description="Semantical occupancy grid map server on Zenoh.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    serve = sub.add_parser("serve", help="run the map server daemon")
+    serve.add_argument("--config", type=Path, default=None, help="TOML config file")
+    serve.add_argument("--listen", action="append", default=None,
+                       help="Zenoh listen endpoint (repeatable; overrides the config)")
+    serve.add_argument("--connect", action="append", default=None,
+                       help="Zenoh connect endpoint (repeatable; overrides the config)")
+    serve.add_argument("--storage", type=Path, default=None, help="tile store directory")
+
+    query = sub.add_parser("query", help="query a running server")
+    qsub = query.add_subparsers(dest="what", required=True)
+    for name in ("submap", "fused", "supercells"):
+        q = qsub.add_parser(name, help=f"the {name} queryable")
+        _connection_args(q)
+        _window_args(q)
+        q.add_argument("--png", type=Path, default=None, help="write a picture here")
+        q.add_argument("--npy", type=Path, default=None, help="write the array here")
+        if name == "fused":
+            q.add_argument("--method", default="bayes", choices=["bayes", "max"])
+        if name == "supercells":
+            q.add_argument("--block-size", type=int, default=8)
+            q.add_argument("--levels", type=int, default=3)
+            q.add_argument("--bins", type=int, default=5)
+            q.add_argument("--iterations", type=int, default=4)
+            q.add_argument("--gamma", type=float, default=0.1)
+            q.add_argument("--criterion", default="distribution",
+                           choices=["distribution", "energy"])
+    for name in ("info", "stats"):
+        _connection_args(qsub.add_parser(name, help=f"the {name} queryable"))
+
+    pub = sub.add_parser("publish-ism", help="send an ISM from a .npy or image file")
+    _connection_args(pub)
+    pub.add_argument("file", type=Path, help=".npy (uint8/int8/float32) or an image (grey)")
+    pub.add_argument("--key", default="ism/cli/manual", help="key (default %(default)s)")
+    pub.add_argument("--resolution", type=float, required=True, help="ISM cell size (m)")
+    pub.add_argument("--x", type=float, default=0.0, help="origin x of cell (0,0) corner")
+    pub.add_argument("--y", type=float, default=0.0, help="origin y of cell (0,0) corner")
+    pub.add_argument("--yaw", type=float, default=0.0, help="origin heading (rad)")
+    pub.add_argument("--encoding", default=None,
+                     choices=["prob_u8", "occupancy_i8", "prob_f32"])
+    pub.add_argument("--layer", default=None, help="layer name (default: key remainder)")
+    pub.add_argument("--frame", default="map")
+
+    schemas = sub.add_parser("schemas", help="write the JSON Schema of every message")
+    schemas.add_argument("--out", type=Path, default=Path("schemas"))
+    schemas.add_argument("--check", action="store_true", help="fail if files are stale")
+
+    router = sub.add_parser("router", help="run a Zenoh router (Python) for robots and servers")
+    router.add_argument("--listen", action="append", default=None,
+                        help="endpoint (repeatable; default tcp/0.0.0.0:7447)")
+    router.add_argument("--config", type=Path, default=None, help="Zenoh JSON5 config")
+
+    for name, (_, _, text) in _DELEGATED.items():
+        d = sub.add_parser(name, help=text, add_help=False)
+        d.add_argument("rest", nargs=argparse.REMAINDER)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="sogm-service")
-    parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    # Delegated subcommands parse their own options (including -h).
+    if argv and argv[0] in _DELEGATED:
+        module, func, _ = _DELEGATED[argv[0]]
+        _setup_logging(False)
+        result: int = getattr(importlib.import_module(module), func)(argv[1:])
+        return result
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    handler = {"serve": _serve, "query": _query, "publish-ism": _publish_ism,
+               "schemas": _schemas, "router": _router}[args.command]
+    return handler(args)
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def wait_for_signal() -> None:
+    """Block until SIGINT or SIGTERM."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from sogm_service.config import ConfigError, load_config
+
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        print(f"sogm-service serve: {exc}", file=sys.stderr)
+        return 2
+    updates: dict[str, Any] = {}
+    if args.listen:
+        updates["listen"] = args.listen
+    if args.connect:
+        updates["connect"] = args.connect
+    if updates:
+        config = config.model_copy(update={"zenoh": config.zenoh.model_copy(update=updates)})
+    if args.storage:
+        config = config.model_copy(
+            update={"storage": config.storage.model_copy(update={"directory": args.storage})})
+    from sogm_service.server import MapServer
+
+    server = MapServer(config).start()
+    print(f"sogm-service: serving map {config.map.name!r} as {server.server_id}", flush=True)
+    try:
+        wait_for_signal()
+    finally:
+        logging.getLogger("sogm_service").info("shutting down: draining and flushing")
+        server.stop()
+    return 0
+
+
+def _client(args: argparse.Namespace) -> Any:
+    from sogm_service.client import MapClient
+
+    return MapClient.connect(args.connect, map_name=args.map, prefix=args.prefix,
+                             timeout=args.timeout)
+
+
+def _query(args: argparse.Namespace) -> int:
+    from sogm_service.client import ClientError
+
+    with _client(args) as client:
+        try:
+            return _run_query(client, args)
+        except ClientError as exc:
+            print(f"sogm-service query {args.what}: {exc}", file=sys.stderr)
+            return 1
+
+
+def _window(args: argparse.Namespace) -> dict[str, Any]:
+    layers = args.layers.split(",") if args.layers else None
+    return dict(x=args.x, y=args.y, yaw=args.yaw, width=args.width, height=args.height,
+                resolution=args.resolution, layers=layers, interp=args.interp)
+
+
+def _run_query(client: Any, args: argparse.Namespace) -> int:
+    if args.what in ("info", "stats"):
+        reply = client.info() if args.what == "info" else client.stats()
+        print(reply.model_dump_json(indent=2))
+        return 0
+    if args.what == "supercells":
+        from sogm_service.supercell_service import run_supercell_query
+
+        return run_supercell_query(client, args, _window(args))
+    if args.what == "submap":
+        result = client.submap(**_window(args))
+    else:
+        result = client.fused(method=args.method, **_window(args))
+    _print_grid(result)
+    _write_grid_outputs(result, args.png, args.npy)
+    return 0
+
+
+def _print_grid(result: Any) -> None:
+    g = result.geometry
+    p = result.probabilities()
+    known = abs(p - 0.5) > 1e-3
+    print(f"{'fused (' + result.method + ')' if result.method else 'submap'}: "
+          f"{g.width}x{g.height} cells at {g.resolution} m, origin ({g.origin.x:.3f}, "
+          f"{g.origin.y:.3f}, {g.origin.yaw:.3f} rad), layers {result.layers}")
+    print(f"known cells: {known.mean() * 100:.1f} %, occupied (p > 0.5): "
+          f"{(p > 0.5 + 1e-3).mean() * 100:.1f} %")
+
+
+def _write_grid_outputs(result: Any, png: Path | None, npy: Path | None) -> None:
+    import cv2
+    import numpy as np
+
+    from sogm_service.render import probability_image
+
+    if npy is not None:
+        np.save(npy, result.data)
+        print(f"wrote {npy}")
+    if png is None:
+        return
+    p = result.probabilities()
+    if p.ndim == 2:
+        cv2.imwrite(str(png), probability_image(p))
+        print(f"wrote {png}")
+        return
+    for k, layer in enumerate(result.layers):
+        path = png if len(result.layers) == 1 else png.with_name(
+            f"{png.stem}_{layer.replace('/', '_')}{png.suffix}")
+        cv2.imwrite(str(path), probability_image(p[k]))
+        print(f"wrote {path}")
+
+
+def _publish_ism(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from sogm_service.geometry import Pose2D
+
+    data = _read_grid(args.file)
+    with _client(args) as client:
+        msg = client.publish_ism(args.key, data, resolution=args.resolution,
+                                 origin=Pose2D(args.x, args.y, args.yaw),
+                                 encoding=args.encoding, layer=args.layer, frame=args.frame)
+    print(f"published {msg.width}x{msg.height} {msg.encoding} ISM on {args.key} "
+          f"({np.asarray(data).nbytes} bytes)")
+    return 0
+
+
+def _read_grid(path: Path) -> Any:
+    import cv2
+    import numpy as np
+
+    if path.suffix == ".npy":
+        return np.load(path, allow_pickle=False)
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise SystemExit(f"cannot read {path} as an image")
+    # Image convention: dark = occupied, row 0 at the top; map rows grow upward.
+    return np.ascontiguousarray((255 - img)[::-1])
+
+
+def _schemas(args: argparse.Namespace) -> int:
+    from sogm_service import codec
+
+    if args.check:
+        stale = codec.stale_schemas(args.out)
+        if stale:
+            print(f"stale schemas in {args.out}: {stale}; run sogm-service schemas",
+                  file=sys.stderr)
+            return 1
+        print(f"schemas in {args.out} are up to date")
+        return 0
+    for path in codec.write_schemas(args.out):
+        print(f"wrote {path}")
+    return 0
+
+
+def _router(args: argparse.Namespace) -> int:
+    from sogm_service.config import ZenohSettings
+    from sogm_service.zsession import open_session
+
+    settings = ZenohSettings(mode="router", listen=args.listen or ["tcp/0.0.0.0:7447"],
+                             config_file=args.config)
+    session = open_session(settings)
+    print(f"sogm-service router {session.info.zid()} listening on {settings.listen}",
+          flush=True)
+    try:
+        wait_for_signal()
+    finally:
+        session.close()
     return 0

@@ -1,0 +1,60 @@
+"""Pictures of maps for people (pure: arrays in, BGR uint8 images out; writing is the caller's).
+
+Convention: free is white, occupied is black, and *unknown* (no evidence: log-odds 0) is a
+distinct muted blue so that "never observed" never reads as "50 % occupied grey".
+"""
+
+from __future__ import annotations
+
+import colorsys
+
+import numpy as np
+import numpy.typing as npt
+
+UNKNOWN_BGR = (150, 110, 70)
+_UNKNOWN_TOL = 0.5 / 255.0
+
+
+def probability_image(p: npt.NDArray, unknown: npt.NDArray[np.bool_] | None = None,
+                      scale: int = 1) -> npt.NDArray[np.uint8]:
+    """``(H, W)`` probabilities -> BGR image; row 0 at the bottom (map y up)."""
+    p = np.asarray(p, dtype=np.float32)
+    if unknown is None:
+        unknown = np.abs(p - 0.5) < _UNKNOWN_TOL
+    grey = np.rint((1.0 - p) * 255.0).astype(np.uint8)
+    img = np.repeat(grey[..., None], 3, axis=2)
+    img[unknown] = UNKNOWN_BGR
+    return _finish(img, scale)
+
+
+def class_colors(n: int) -> npt.NDArray[np.uint8]:
+    """``n`` well-separated BGR colours (golden-ratio hues)."""
+    colors = []
+    for k in range(n):
+        r, g, b = colorsys.hsv_to_rgb((k * 0.618033988749895) % 1.0, 0.75, 0.95)
+        colors.append((int(b * 255), int(g * 255), int(r * 255)))
+    return np.array(colors, dtype=np.uint8).reshape(n, 3)
+
+
+def dominant_class_image(stack: npt.NDArray, threshold: float = 0.5,
+                         scale: int = 1) -> npt.NDArray[np.uint8]:
+    """``(N, H, W)`` probabilities -> each cell coloured by its most likely layer.
+
+    Cells where no layer exceeds ``threshold`` are shown as unknown; the colour's brightness
+    follows the winning probability.
+    """
+    stack = np.asarray(stack, dtype=np.float32)
+    colors = class_colors(stack.shape[0]).astype(np.float32)
+    best = np.argmax(stack, axis=0)
+    p = np.max(stack, axis=0)
+    img = colors[best] * (0.4 + 0.6 * np.clip((p - threshold) / (1 - threshold), 0, 1))[..., None]
+    out = img.astype(np.uint8)
+    out[p <= threshold] = UNKNOWN_BGR
+    return _finish(out, scale)
+
+
+def _finish(img: npt.NDArray[np.uint8], scale: int) -> npt.NDArray[np.uint8]:
+    img = np.ascontiguousarray(img[::-1])  # map y grows upward, image rows downward
+    if scale > 1:
+        img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
+    return img
