@@ -1,0 +1,150 @@
+"""Shared fixtures: real server processes and client sessions on 127.0.0.1 (multicast off)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sogm_service.client import MapClient
+from sogm_service.zsession import free_tcp_endpoint
+
+
+@dataclass
+class ServerProcess:
+    """A ``sogm-service serve`` child process that this test started (and alone may end)."""
+
+    proc: subprocess.Popen[bytes]
+    endpoint: str
+    config_path: Path
+    log_path: Path
+
+    def client(self, timeout: float = 5.0) -> MapClient:
+        return MapClient.connect(self.endpoint, timeout=timeout)
+
+    def terminate(self, timeout: float = 15.0) -> int:
+        """SIGTERM and wait; returns the exit code (kills by pid only if it hangs)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
+            raise
+
+    def log(self) -> str:
+        return self.log_path.read_text(encoding="utf-8", errors="replace")
+
+
+def toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def write_config(path: Path, sections: dict[str, dict[str, Any]],
+                 ism: list[dict[str, Any]] | None = None) -> Path:
+    lines = []
+    for name, fields in sections.items():
+        lines.append(f"[{name}]")
+        lines += [f"{k} = {toml_value(v)}" for k, v in fields.items()]
+    for source in ism or []:
+        lines.append("[[ism]]")
+        for k, v in source.items():
+            if isinstance(v, dict):
+                continue
+            lines.append(f"{k} = {toml_value(v)}")
+        for k, v in source.items():
+            if isinstance(v, dict):
+                lines.append(f"[ism.{k}]")
+                lines += [f"{kk} = {toml_value(vv)}" for kk, vv in v.items()]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = None,
+                 ism: list[dict[str, Any]] | None = None, name: str = "server",
+                 endpoint: str | None = None, wait: float = 20.0) -> ServerProcess:
+    """Start ``python -m sogm_service serve`` with a config; return once it is discoverable."""
+    endpoint = endpoint or free_tcp_endpoint()
+    sections = {k: dict(v) for k, v in (sections or {}).items()}
+    sections.setdefault("zenoh", {}).setdefault("listen", [endpoint])
+    config_path = write_config(tmp_path / f"{name}.toml", sections, ism)
+    log_path = tmp_path / f"{name}.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "sogm_service", "serve", "--config", str(config_path)],
+            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    server = ServerProcess(proc, endpoint, config_path, log_path)
+    map_name = sections.get("map", {}).get("name", "default")
+    deadline = time.monotonic() + wait
+    _wait_for_port(server, deadline)
+    with MapClient.connect(endpoint, map_name=map_name, timeout=1.0) as probe:
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                raise RuntimeError(f"server exited with {proc.returncode}:\n{server.log()}")
+            try:
+                if probe.servers(timeout=1.0):
+                    return server
+            except Exception:
+                pass
+            time.sleep(0.1)
+    server.terminate()
+    raise RuntimeError(f"server did not come up:\n{server.log()}")
+
+
+def _wait_for_port(server: ServerProcess, deadline: float) -> None:
+    host, port = server.endpoint.removeprefix("tcp/").rsplit(":", 1)
+    while time.monotonic() < deadline:
+        if server.proc.poll() is not None:
+            raise RuntimeError(f"server exited with {server.proc.returncode}:\n{server.log()}")
+        with socket.socket() as s:
+            if s.connect_ex((host, int(port))) == 0:
+                return
+        time.sleep(0.05)
+    server.terminate()
+    raise RuntimeError(f"server never listened on {server.endpoint}:\n{server.log()}")
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[ServerProcess]:
+    srv = start_server(tmp_path)
+    yield srv
+    if srv.proc.poll() is None:
+        srv.terminate()
+
+
+def wait_until(predicate: Any, timeout: float = 10.0, interval: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return bool(predicate())
+
+
+def wait_processed(client: MapClient, n: int, timeout: float = 15.0) -> dict[str, int]:
+    """Wait until the server has fused or rejected ``n`` ISMs; returns its counters."""
+    counters: dict[str, int] = {}
+
+    def done() -> bool:
+        nonlocal counters
+        counters = client.stats().counters
+        return counters.get("isms_fused", 0) + counters.get("isms_rejected", 0) >= n
+
+    wait_until(done, timeout)
+    return counters
