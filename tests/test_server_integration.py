@@ -228,7 +228,7 @@ def test_unknown_cells_are_a_no_op_over_the_wire(server: ServerProcess) -> None:
         after = client.submap(x=0.5, y=0.5, width=1, height=1, resolution=0.1,
                               encoding="logodds_i16")
     np.testing.assert_array_equal(before.data, after.data)
-    lo, hi = logodds.clamp_limits()
+    _, hi = logodds.clamp_limits()
     assert before.data.min() > 0 and before.data.max() <= hi
 
 
