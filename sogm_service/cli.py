@@ -131,12 +131,17 @@ def _setup_logging(verbose: bool) -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
-def wait_for_signal() -> None:
-    """Block until SIGINT or SIGTERM."""
+def stop_on_signal() -> threading.Event:
+    """An event set by SIGINT or SIGTERM; install it before opening any session so that an
+    early signal still leads to a clean shutdown."""
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    while not stop.wait(0.5):
+    return stop
+
+
+def wait_for(stop: threading.Event) -> None:
+    while not stop.wait(0.2):
         pass
 
 
@@ -160,10 +165,11 @@ def _serve(args: argparse.Namespace) -> int:
             update={"storage": config.storage.model_copy(update={"directory": args.storage})})
     from sogm_service.server import MapServer
 
+    stop = stop_on_signal()
     server = MapServer(config).start()
     print(f"sogm-service: serving map {config.map.name!r} as {server.server_id}", flush=True)
     try:
-        wait_for_signal()
+        wait_for(stop)
     finally:
         logging.getLogger("sogm_service").info("shutting down: draining and flushing")
         server.stop()
@@ -296,11 +302,12 @@ def _router(args: argparse.Namespace) -> int:
 
     settings = ZenohSettings(mode="router", listen=args.listen or ["tcp/0.0.0.0:7447"],
                              config_file=args.config)
+    stop = stop_on_signal()
     session = open_session(settings)
     print(f"sogm-service router {session.info.zid()} listening on {settings.listen}",
           flush=True)
     try:
-        wait_for_signal()
+        wait_for(stop)
     finally:
         session.close()
     return 0

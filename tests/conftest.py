@@ -80,9 +80,10 @@ def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = No
                  ism: list[dict[str, Any]] | None = None, name: str = "server",
                  endpoint: str | None = None, wait: float = 20.0) -> ServerProcess:
     """Start ``python -m sogm_service serve`` with a config; return once it is discoverable."""
-    endpoint = endpoint or free_tcp_endpoint()
     sections = {k: dict(v) for k, v in (sections or {}).items()}
-    sections.setdefault("zenoh", {}).setdefault("listen", [endpoint])
+    listen = sections.setdefault("zenoh", {}).get("listen")
+    endpoint = listen[0] if listen else (endpoint or free_tcp_endpoint())
+    sections["zenoh"]["listen"] = [endpoint]
     config_path = write_config(tmp_path / f"{name}.toml", sections, ism)
     log_path = tmp_path / f"{name}.log"
     with open(log_path, "wb") as log:

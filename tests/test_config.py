@@ -1,0 +1,55 @@
+"""Configuration: the documented example is the defaults, bad files fail with field + reason."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from sogm_service.config import ConfigError, ServiceConfig, load_config
+
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
+
+
+def test_deploy_example_documents_exactly_the_defaults() -> None:
+    assert load_config(DEPLOY / "sogm-service.toml") == ServiceConfig()
+
+
+def test_no_file_means_defaults() -> None:
+    cfg = load_config(None)
+    assert cfg.map.name == "default" and cfg.ism[0].key_expr == "ism/**"
+    assert cfg.zenoh.multicast_scouting is False
+
+
+@pytest.mark.parametrize(("text", "field", "reason"), [
+    ("[map]\ntile_size = 300\n", "map.tile_size", "power of two"),
+    ("[map]\nresolution = -1\n", "map.resolution", "greater than 0"),
+    ("[limits]\nqueue_policy = \"sometimes\"\n", "limits.queue_policy", "lossless"),
+    ("[storage]\nchekpoint_interval_s = 3\n", "storage.chekpoint_interval_s", "Extra"),
+    ("[map\n", "", "not valid TOML"),
+])
+def test_bad_config_names_field_and_reason(tmp_path: Path, text: str, field: str,
+                                           reason: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert field in str(err.value) and reason in str(err.value)
+
+
+def test_serve_with_bad_config_exits_2_with_the_reason(tmp_path: Path) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text("[map]\neps0 = 0.7\n")
+    proc = subprocess.run([sys.executable, "-m", "sogm_service", "serve", "--config",
+                           str(path)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "map.eps0" in proc.stderr
+
+
+@pytest.mark.parametrize("name", ["zenoh-robot-client.json5", "zenoh-robot-peer.json5",
+                                  "zenoh-router.json5", "zenoh-server.json5"])
+def test_deploy_zenoh_configs_parse(name: str) -> None:
+    zenoh.Config.from_file(str(DEPLOY / name))
