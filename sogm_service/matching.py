@@ -1,0 +1,640 @@
+"""Scan matching of misaligned ISMs against the map (paper section III-C.2).
+
+Robots with drifting odometry send ISMs that are offset and rotated against the map; fusing them
+blindly smears walls.  The paper recovers the missing transform "by utilizing ORB feature
+extraction of the ISM and the corresponding SOGM's surrounding"; the features "are matched via
+the distance of pairwise feature candidates which again leads to a homography" (III-C.2, Fig. 4).
+
+Pipeline of :func:`match_ism` (all in cell units, the ISM already resampled to map resolution):
+
+1. *Render* both grids to 8-bit images (:func:`render_u8`): a monotone, piecewise-linear map of
+   clipped log-odds with three distinct anchors - free dark, unknown mid-grey, occupied white -
+   so that walls (occupied against free) give the strongest gradients and unknown never looks
+   like either.
+2. *Detect* ORB keypoints in both (OpenCV), the images padded by replication so that keypoints
+   near the border survive without the padding inventing edges.
+3. *Match* Hamming descriptors, **guided by the claimed pose**: a pair is only a candidate when
+   the window keypoint lies where the ISM keypoint could land under the largest correction that
+   would be accepted anyway (translation + rotation bounds).  This removes most of the
+   repetitive-structure outliers of grid maps before the ratio test / cross check.
+4. *Estimate* the transform robustly with RANSAC: ``cv2.estimateAffinePartial2D`` (rotation,
+   translation, uniform scale - the physically right model for two 2-D grids of the same
+   resolution; default) or the paper's full homography (``cv2.findHomography``).
+5. *Accept* only if enough inliers support it, the correction is within bounds, the scale is ~1
+   and the agreement of the corrected ISM with the map (:func:`agreement`: Pearson correlation
+   of clipped log-odds over cells known in both) is not worse than before and not poor.  Every
+   failure carries a :class:`MatchReason`.
+
+Conventions.  The ISM and window arrays are indexed ``[v, u]`` like every grid here
+(:mod:`sogm_service.geometry`); continuous cell coordinates put cell centres on integers.
+``prior`` is the 3x3 map ISM cell -> window cell implied by the claimed pose
+(:func:`prior_matrix`); ``MatchResult.matrix`` is the estimated map ISM cell -> window cell.
+The *correction* ``C = matrix @ inv(prior)`` acts in window cells; it is reported as the
+displacement ``(dx, dy)`` of the ISM's centre, the rotation ``dtheta`` (rad, counter-clockwise
+in the grid's ``u, v`` axes = the map frame's x, y axes when the window is axis-aligned) and the
+scale about that centre.  :func:`corrected_geometry` turns it into the ISM's corrected
+:class:`~sogm_service.geometry.GridGeometry` so the server simply resamples the ISM with it.
+
+Log-odds inputs: integer arrays are the fixed point of :mod:`sogm_service.logodds`
+(``1 / SCALE`` nat), floating arrays are nats.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import logodds
+from sogm_service.geometry import GridGeometry, Pose2D
+
+Matrix3 = npt.NDArray[np.float64]
+Image = npt.NDArray[np.uint8]
+Points = npt.NDArray[np.float32]
+
+Model = Literal["partial_affine", "homography"]
+
+
+class MatchReason(StrEnum):
+    """Why a match was accepted or refused (machine-readable, counted by the server)."""
+
+    OK = "ok"
+    TOO_FEW_FEATURES = "too_few_features"  # ORB found too little structure in ISM or window
+    TOO_FEW_MATCHES = "too_few_matches"  # descriptor matching left too few candidate pairs
+    NO_TRANSFORM = "no_transform"  # RANSAC found no model
+    TOO_FEW_INLIERS = "too_few_inliers"
+    DEGENERATE = "degenerate_transform"  # mirror, strong perspective or scale far from 1
+    CORRECTION_TOO_LARGE = "correction_too_large"
+    TOO_LITTLE_OVERLAP = "too_little_overlap"  # too few cells known in both to judge quality
+    NO_IMPROVEMENT = "no_improvement"  # corrected ISM agrees less with the map than before
+    POOR_AGREEMENT = "poor_agreement"  # corrected ISM still agrees poorly with the map
+
+
+@dataclass(frozen=True, slots=True)
+class MatchParams:
+    """Tuning of :func:`match_ism`; lengths are in cells, angles in radians, log-odds in nats."""
+
+    model: Model = "partial_affine"
+    # Rendering (step 1)
+    saturation: float = 2.0  # |l| at which a cell renders fully free / occupied
+    known_threshold: float = 0.2  # |l| below this counts as unknown
+    free_level: int = 0
+    unknown_level: int = 96
+    occupied_level: int = 255
+    blur_sigma: float = 1.0  # ORB is noisy on binary images; a light blur steadies orientation
+    # ORB (step 2)
+    n_features: int = 800
+    scale_factor: float = 1.3
+    n_levels: int = 3
+    patch_size: int = 23
+    fast_threshold: int = 12
+    # Matching (step 3)
+    ratio: float = 0.85  # Lowe's ratio test among gated candidates; 1.0 disables it
+    cross_check: bool = True  # keep only mutual best matches
+    gate_slack: float = 4.0  # extra cells on top of the correction bounds
+    # RANSAC (step 4)
+    ransac_threshold: float = 2.0
+    ransac_max_iters: int = 2000
+    ransac_confidence: float = 0.995
+    seed: int = 0
+    # Acceptance (step 5)
+    min_features: int = 20
+    min_inliers: int = 12
+    max_translation: float = 20.0
+    max_rotation: float = math.radians(15.0)
+    max_scale_change: float = 0.05  # |scale - 1|
+    max_distortion: float = 2.0  # homography only: cells off the nearest similarity at corners
+    min_overlap: int = 200  # cells known in both needed for the quality check
+    min_gain: float = 0.0  # score_after must be >= score_before + min_gain
+    min_score: float = 0.3  # and >= this
+
+    def __post_init__(self) -> None:
+        if self.model not in ("partial_affine", "homography"):
+            raise ValueError(f"model must be 'partial_affine' or 'homography', got {self.model!r}")
+        if not (0 < self.ratio <= 1.0):
+            raise ValueError(f"ratio must lie in (0, 1], got {self.ratio}")
+        if self.min_inliers < 4 or self.min_features < 4:
+            raise ValueError("min_inliers and min_features must be at least 4")
+        if not (self.free_level < self.unknown_level < self.occupied_level <= 255
+                and self.free_level >= 0):
+            raise ValueError("need 0 <= free_level < unknown_level < occupied_level <= 255")
+        if self.saturation <= 0 or self.known_threshold < 0:
+            raise ValueError("saturation must be > 0 and known_threshold >= 0")
+
+    def window_margin(self, ism_width: int, ism_height: int) -> int:
+        """Cells of map to add around the claimed ISM so any acceptable correction stays inside.
+
+        A rotation by ``max_rotation`` about the ISM's centre moves its corners by
+        ``2 r sin(max_rotation / 2)`` with ``r`` the half diagonal.
+        """
+        r = 0.5 * math.hypot(ism_width, ism_height)
+        swing = 2.0 * r * math.sin(0.5 * self.max_rotation)
+        return math.ceil(self.max_translation + swing + self.gate_slack)
+
+
+@dataclass(frozen=True, slots=True)
+class Correction:
+    """The correction about the ISM's centre, in window cells: shift, rotation (rad), scale."""
+
+    dx: float
+    dy: float
+    dtheta: float
+    scale: float
+
+    @property
+    def translation(self) -> float:
+        return math.hypot(self.dx, self.dy)
+
+
+@dataclass(frozen=True, slots=True)
+class MatchResult:
+    """Outcome of :func:`match_ism`.
+
+    ``matrix`` (3x3, ISM cells -> window cells) and ``correction`` are filled whenever RANSAC
+    found a model, also when it was then refused - a report-only mode can publish them.
+    """
+
+    accepted: bool
+    reason: MatchReason
+    correction: Correction | None
+    matrix: Matrix3 | None
+    prior: Matrix3
+    n_features_ism: int
+    n_features_map: int
+    n_matches: int
+    inliers: int
+    score_before: float
+    score_after: float
+    elapsed_s: float
+    details: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def affine(self) -> npt.NDArray[np.float64] | None:
+        """The top 2x3 of :attr:`matrix` (exact for the partial-affine model)."""
+        return None if self.matrix is None else self.matrix[:2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 1: rendering and the agreement score
+
+
+def to_nats(l: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """Log-odds in nats: integer arrays are fixed point (``logodds.SCALE``), floats are nats."""
+    a = np.asarray(l)
+    if np.issubdtype(a.dtype, np.integer):
+        return logodds.from_fixed(a)
+    return a.astype(np.float32, copy=False)
+
+
+def render_u8(l_nats: npt.NDArray[np.float32], params: MatchParams) -> Image:
+    """Log-odds -> 8-bit image keeping free, unknown and occupied distinct (III-C.2 step 1).
+
+    Piecewise linear in ``clip(l / saturation, -1, 1)`` between ``free_level``,
+    ``unknown_level`` (at ``l = 0``) and ``occupied_level``; weak evidence stays near unknown.
+    """
+    t = np.clip(l_nats / np.float32(params.saturation), -1.0, 1.0)
+    up = np.float32(params.occupied_level - params.unknown_level)
+    down = np.float32(params.unknown_level - params.free_level)
+    g = np.float32(params.unknown_level) + np.where(t > 0, t * up, t * down)
+    img = np.rint(g).astype(np.uint8)
+    if params.blur_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), params.blur_sigma)
+    return img
+
+
+def agreement(
+    a_nats: npt.NDArray[np.float32], b_nats: npt.NDArray[np.float32], params: MatchParams
+) -> tuple[float, int]:
+    """Pearson correlation of clipped log-odds over cells known in both, and their count.
+
+    Clipping at ``saturation`` keeps a saturated map and a mild ISM comparable; the
+    correlation is NaN when fewer than ``min_overlap`` cells are known in both or one side is
+    constant there (nothing to judge - e.g. an empty floor).
+    """
+    s = np.float32(params.saturation)
+    both = (np.abs(a_nats) >= params.known_threshold) & (np.abs(b_nats) >= params.known_threshold)
+    n = int(np.count_nonzero(both))
+    if n < params.min_overlap:
+        return math.nan, n
+    x = np.clip(a_nats[both], -s, s).astype(np.float64)
+    y = np.clip(b_nats[both], -s, s).astype(np.float64)
+    x -= x.mean()
+    y -= y.mean()
+    den = math.sqrt(float(x @ x) * float(y @ y))
+    if den <= 1e-12:
+        return math.nan, n
+    return float(x @ y) / den, n
+
+
+def warp_into(
+    l_nats: npt.NDArray[np.float32], matrix: Matrix3, shape: tuple[int, int]
+) -> npt.NDArray[np.float32]:
+    """Resample ISM log-odds into a window of ``shape`` via ISM cells -> window cells ``matrix``.
+
+    Bilinear on log-odds (the paper's biodds, III-C.1); outside the ISM is unknown (0).
+    """
+    h, w = shape
+    if abs(matrix[2, 0]) + abs(matrix[2, 1]) < 1e-12 and abs(matrix[2, 2] - 1.0) < 1e-12:
+        out = cv2.warpAffine(l_nats, matrix[:2], (w, h), flags=cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    else:
+        out = cv2.warpPerspective(l_nats, matrix, (w, h), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return np.asarray(out, dtype=np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Steps 2 and 3: ORB features and guided matching
+
+
+@dataclass(frozen=True, slots=True)
+class _Features:
+    points: Points  # (N, 2) continuous cell coordinates (u, v)
+    descriptors: npt.NDArray[np.uint8]  # (N, 32)
+
+    @property
+    def count(self) -> int:
+        return int(self.points.shape[0])
+
+
+def detect(img: Image, params: MatchParams) -> _Features:
+    """ORB keypoints and descriptors of a rendered grid (III-C.2: "ORB feature extraction")."""
+    pad = params.patch_size
+    padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    orb = cv2.ORB.create(
+        nfeatures=params.n_features, scaleFactor=params.scale_factor, nlevels=params.n_levels,
+        edgeThreshold=params.patch_size, patchSize=params.patch_size,
+        fastThreshold=params.fast_threshold, scoreType=cv2.ORB_HARRIS_SCORE,
+    )
+    kps, desc = orb.detectAndCompute(padded, None)
+    if desc is None or len(kps) == 0:
+        return _Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8))
+    pts = np.array([kp.pt for kp in kps], dtype=np.float32) - np.float32(pad)
+    # Keypoints found only in the replicated padding describe no real cell.
+    h, w = img.shape
+    inside = (pts[:, 0] > -0.5) & (pts[:, 1] > -0.5) & (pts[:, 0] < w - 0.5) & (
+        pts[:, 1] < h - 0.5)
+    return _Features(pts[inside], desc[inside])
+
+
+def apply(matrix: Matrix3, pts: npt.NDArray) -> npt.NDArray[np.float64]:
+    """Map ``(N, 2)`` points through a 3x3 (affine or projective) transform."""
+    p = np.asarray(pts, dtype=np.float64)
+    q = p @ matrix[:2, :2].T + matrix[:2, 2]
+    wz = p @ matrix[2, :2] + matrix[2, 2]
+    return q / wz[:, None]
+
+
+def gate_mask(
+    ism: _Features, win: _Features, prior: Matrix3, centre: npt.NDArray[np.float64],
+    params: MatchParams,
+) -> npt.NDArray[np.uint8]:
+    """Candidate pairs: window keypoints within reach of an acceptable correction.
+
+    ``centre`` is the ISM's centre in ISM cells; a point at distance ``r`` from it moves by at
+    most ``max_translation + 2 r sin(max_rotation / 2) + r * max_scale_change``.
+    """
+    q = apply(prior, ism.points)
+    r = np.hypot(*(ism.points.astype(np.float64) - centre).T)
+    reach = (params.max_translation + params.gate_slack
+             + r * (2.0 * math.sin(0.5 * params.max_rotation) + params.max_scale_change))
+    d2 = ((q[:, None, :] - win.points[None, :, :].astype(np.float64)) ** 2).sum(axis=-1)
+    return (d2 <= (reach ** 2)[:, None]).astype(np.uint8)
+
+
+def match_pairs(
+    ism: _Features, win: _Features, mask: npt.NDArray[np.uint8], params: MatchParams
+) -> tuple[Points, Points]:
+    """Hamming matching among gated candidates: ratio test, then optional cross check."""
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    knn = bf.knnMatch(ism.descriptors, win.descriptors, k=2, mask=mask)
+    fwd: dict[int, int] = {}
+    for cand in knn:
+        if not cand:
+            continue
+        # A unique candidate within the gate passes the ratio test by definition.
+        if len(cand) == 1 or cand[0].distance < params.ratio * cand[1].distance:
+            fwd[cand[0].queryIdx] = cand[0].trainIdx
+    if params.cross_check and fwd:
+        back = bf.knnMatch(win.descriptors, ism.descriptors, k=1, mask=np.ascontiguousarray(
+            mask.T))
+        best = {c[0].queryIdx: c[0].trainIdx for c in back if c}
+        fwd = {i: j for i, j in fwd.items() if best.get(j) == i}
+    idx = np.array(sorted(fwd.items()), dtype=np.int64).reshape(-1, 2)
+    return ism.points[idx[:, 0]], win.points[idx[:, 1]]
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 4: robust estimation and the correction
+
+
+def estimate(src: Points, dst: Points, params: MatchParams) -> tuple[Matrix3 | None, int]:
+    """RANSAC model ISM cells -> window cells and its inlier count (seeded, deterministic)."""
+    cv2.setRNGSeed(params.seed)
+    if params.model == "homography":
+        h, inl = cv2.findHomography(src, dst, cv2.RANSAC, params.ransac_threshold,
+                                    maxIters=params.ransac_max_iters,
+                                    confidence=params.ransac_confidence)
+        m = None if h is None else np.asarray(h, dtype=np.float64)
+    else:
+        a, inl = cv2.estimateAffinePartial2D(
+            src, dst, method=cv2.RANSAC, ransacReprojThreshold=params.ransac_threshold,
+            maxIters=params.ransac_max_iters, confidence=params.ransac_confidence,
+            refineIters=10)
+        m = None if a is None else np.vstack([np.asarray(a, dtype=np.float64), [0.0, 0.0, 1.0]])
+    if m is None or not np.all(np.isfinite(m)) or inl is None:
+        return None, 0
+    return m, int(np.count_nonzero(inl))
+
+
+def fit_similarity(src: npt.NDArray, dst: npt.NDArray) -> Matrix3:
+    """Least-squares similarity (rotation, uniform scale, translation) ``src -> dst`` (Umeyama).
+
+    Used to read rotation and scale off a homography and to drop its projective part.
+    """
+    s = np.asarray(src, dtype=np.float64)
+    d = np.asarray(dst, dtype=np.float64)
+    ms, md = s.mean(axis=0), d.mean(axis=0)
+    s0, d0 = s - ms, d - md
+    # For 2-D similarities the least-squares solution is closed-form in complex numbers.
+    zs = s0[:, 0] + 1j * s0[:, 1]
+    zd = d0[:, 0] + 1j * d0[:, 1]
+    k = complex(np.vdot(zs, zd) / max(float(np.vdot(zs, zs).real), 1e-12))
+    a, b = k.real, k.imag
+    t = md - np.array([a * ms[0] - b * ms[1], b * ms[0] + a * ms[1]])
+    return np.array([[a, -b, t[0]], [b, a, t[1]], [0.0, 0.0, 1.0]])
+
+
+def ism_centre(shape: tuple[int, int]) -> npt.NDArray[np.float64]:
+    """Continuous cell coordinates ``(u, v)`` of a grid's centre."""
+    return np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
+
+
+def ism_corners(shape: tuple[int, int]) -> npt.NDArray[np.float64]:
+    """The four outer corners of a grid in continuous cell coordinates."""
+    h, w = shape
+    return np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+
+
+def correction_of(
+    matrix: Matrix3, prior: Matrix3, shape: tuple[int, int]
+) -> tuple[Correction, float]:
+    """The correction about the ISM centre and, for a homography, its distortion in cells.
+
+    The distortion is how far the model moves the ISM's corners away from the nearest
+    similarity - 0 for the partial-affine model.
+    """
+    pts = np.vstack([ism_corners(shape), ism_centre(shape)])
+    claimed = apply(prior, pts)
+    found = apply(matrix, pts)
+    sim = fit_similarity(claimed, found)
+    distortion = float(np.max(np.hypot(*(apply(sim, claimed) - found).T)))
+    c = claimed[-1]
+    shift = found[-1] - c
+    theta = math.atan2(sim[1, 0], sim[0, 0])
+    scale = math.hypot(sim[0, 0], sim[1, 0])
+    return Correction(float(shift[0]), float(shift[1]), theta, scale), distortion
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 5 and the public entry point
+
+
+def default_prior(ism_shape: tuple[int, int], window_shape: tuple[int, int]) -> Matrix3:
+    """ISM cells -> window cells when the ISM is centred, axis-aligned, in the window."""
+    off = ism_centre(window_shape) - ism_centre(ism_shape)
+    return np.array([[1.0, 0.0, off[0]], [0.0, 1.0, off[1]], [0.0, 0.0, 1.0]])
+
+
+def prior_matrix(ism_geom: GridGeometry, window_geom: GridGeometry) -> Matrix3:
+    """ISM cells -> window cells implied by the two geometries (the claimed pose)."""
+    return np.asarray(window_geom.world_to_cell() @ ism_geom.cell_to_world(), dtype=np.float64)
+
+
+def match_window(ism_geom: GridGeometry, params: MatchParams) -> GridGeometry:
+    """The map window to resample for matching: the claimed ISM grown by the window margin.
+
+    Same resolution and yaw as the ISM, so :func:`prior_matrix` is a pure shift (and equal to
+    :func:`default_prior`).
+    """
+    m = params.window_margin(ism_geom.width, ism_geom.height)
+    return ism_geom.subgrid(-m, -m, ism_geom.width + 2 * m, ism_geom.height + 2 * m)
+
+
+def _judge(
+    corr: Correction, distortion: float, inliers: int, params: MatchParams
+) -> MatchReason | None:
+    """Acceptance rules that need no map cells; ``None`` when they all pass."""
+    if inliers < params.min_inliers:
+        return MatchReason.TOO_FEW_INLIERS
+    if distortion > params.max_distortion or abs(corr.scale - 1.0) > params.max_scale_change:
+        return MatchReason.DEGENERATE
+    if corr.translation > params.max_translation or abs(corr.dtheta) > params.max_rotation:
+        return MatchReason.CORRECTION_TOO_LARGE
+    return None
+
+
+def _quality(
+    ism: npt.NDArray[np.float32], win: npt.NDArray[np.float32], prior: Matrix3,
+    matrix: Matrix3, params: MatchParams,
+) -> tuple[MatchReason, float, float]:
+    """The quality check: agreement with the map before and after the correction."""
+    before, _ = agreement(warp_into(ism, prior, win.shape), win, params)
+    after, n_after = agreement(warp_into(ism, matrix, win.shape), win, params)
+    if n_after < params.min_overlap:
+        return MatchReason.TOO_LITTLE_OVERLAP, before, after
+    # NaN compares False: an undefined score (constant cells) never counts as an improvement.
+    if not after >= params.min_score:
+        return MatchReason.POOR_AGREEMENT, before, after
+    if not math.isnan(before) and not after >= before + params.min_gain:
+        return MatchReason.NO_IMPROVEMENT, before, after
+    return MatchReason.OK, before, after
+
+
+def match_ism(
+    ism_logodds: npt.ArrayLike,
+    map_window_logodds: npt.ArrayLike,
+    params: MatchParams | None = None,
+    prior: Matrix3 | None = None,
+) -> MatchResult:
+    """Recover the transform of a misaligned ISM against the map window (paper III-C.2).
+
+    ``ism_logodds`` (``h x w``) and ``map_window_logodds`` (``H x W``) share one resolution;
+    ``prior`` maps ISM cells to window cells under the claimed pose (default: centred,
+    axis-aligned - what :func:`match_window` produces).  Never raises on content: every
+    failure is a refused result with its :class:`MatchReason`.
+    """
+    t0 = time.perf_counter()
+    p = params or MatchParams()
+    ism = to_nats(ism_logodds)
+    win = to_nats(map_window_logodds)
+    if ism.ndim != 2 or win.ndim != 2:
+        raise ValueError("ISM and map window must be 2-D grids")
+    pr = default_prior(ism.shape, win.shape) if prior is None else np.asarray(prior, np.float64)
+    f_ism = detect(render_u8(ism, p), p)
+    f_win = detect(render_u8(win, p), p)
+
+    def done(reason: MatchReason, **kw: object) -> MatchResult:
+        fields: dict[str, object] = {
+            "correction": None, "matrix": None, "n_matches": 0, "inliers": 0,
+            "score_before": math.nan, "score_after": math.nan} | kw
+        return MatchResult(accepted=reason is MatchReason.OK, reason=reason, prior=pr,
+                           n_features_ism=f_ism.count, n_features_map=f_win.count,
+                           elapsed_s=time.perf_counter() - t0, **fields)  # type: ignore[arg-type]
+
+    if min(f_ism.count, f_win.count) < p.min_features:
+        return done(MatchReason.TOO_FEW_FEATURES)
+    mask = gate_mask(f_ism, f_win, pr, ism_centre(ism.shape), p)
+    src, dst = match_pairs(f_ism, f_win, mask, p)
+    if len(src) < max(p.min_inliers, 4):
+        return done(MatchReason.TOO_FEW_MATCHES, n_matches=len(src))
+    m, inliers = estimate(src, dst, p)
+    if m is None:
+        return done(MatchReason.NO_TRANSFORM, n_matches=len(src))
+    corr, distortion = correction_of(m, pr, ism.shape)
+    found = {"correction": corr, "matrix": m, "n_matches": len(src), "inliers": inliers}
+    refused = _judge(corr, distortion, inliers, p)
+    if refused is not None:
+        return done(refused, **found)
+    reason, before, after = _quality(ism, win, pr, m, p)
+    return done(reason, score_before=before, score_after=after, **found)
+
+
+def corrected_geometry(
+    ism_geom: GridGeometry, window_geom: GridGeometry, result: MatchResult,
+    keep_scale: bool = False,
+) -> GridGeometry:
+    """The ISM's geometry in the map frame with the match's correction applied.
+
+    ``result.matrix`` maps ISM cells to window cells, so ``window.cell_to_world @ matrix`` is
+    the corrected ISM cell -> world map.  A homography is replaced by its nearest similarity
+    (a grid geometry cannot hold perspective).  Unless ``keep_scale``, the scale is dropped and
+    the rotation applied about the ISM's centre, whose corrected position is kept: a sensor's
+    metric ISM has no scale error, a fitted ~1.0 scale is noise.
+    """
+    if result.matrix is None:
+        raise ValueError(f"match has no transform to apply (reason: {result.reason})")
+    shape = ism_geom.shape
+    pts = np.vstack([ism_corners(shape), ism_centre(shape)])
+    a = window_geom.cell_to_world() @ fit_similarity(pts, apply(result.matrix, pts))
+    res = ism_geom.resolution * (math.hypot(a[0, 0], a[1, 0]) if keep_scale else 1.0)
+    yaw = math.atan2(a[1, 0], a[0, 0])
+    # Keep the corrected centre; rebuild the corner (origin) from it with the chosen resolution.
+    centre_world = apply(a, ism_centre(shape)[None])[0]
+    half = Pose2D(0.0, 0.0, yaw).transform_points(
+        np.array([shape[1] * res / 2.0, shape[0] * res / 2.0]))
+    origin = Pose2D(float(centre_world[0] - half[0]), float(centre_world[1] - half[1]), yaw)
+    return GridGeometry(res, ism_geom.width, ism_geom.height, origin)
+
+
+# ---------------------------------------------------------------------------------------------
+# Synthetic floor plans (tests and benchmark) and the benchmark entry
+
+
+def synthetic_floorplan(
+    size: int = 512, seed: int = 0, wall: int = 2, l_occ: float = 3.0, l_free: float = -2.0
+) -> npt.NDArray[np.int16]:
+    """A structured, seeded floor plan as fixed log-odds: rooms, walls with doors, furniture.
+
+    Rooms come from a random binary space partition; every wall gets a door; rooms get boxes
+    and round obstacles (their insides unknown, as a laser never sees them).  For the tests and
+    the benchmark of scan matching - a map with the kind of structure ORB latches onto.
+    """
+    rng = np.random.default_rng(seed)
+    occ = np.zeros((size, size), np.uint8)
+    cv2.rectangle(occ, (0, 0), (size - 1, size - 1), 1, wall)
+    rooms: list[tuple[int, int, int, int]] = []
+    _split(rng, (wall, wall, size - wall, size - wall), wall, occ, rooms)
+    inside = np.zeros_like(occ)
+    for x0, y0, x1, y1 in rooms:
+        _furnish(rng, (x0, y0, x1, y1), occ, inside)
+    l = np.where(occ > 0, l_occ, l_free)
+    l[inside > 0] = 0.0
+    return logodds.to_fixed(l)
+
+
+def _split(
+    rng: np.random.Generator, box: tuple[int, int, int, int], wall: int,
+    occ: npt.NDArray[np.uint8], rooms: list[tuple[int, int, int, int]],
+) -> None:
+    """Recursive BSP: split boxes larger than ~100 cells with a wall that has a door."""
+    x0, y0, x1, y1 = box
+    w, h = x1 - x0, y1 - y0
+    if max(w, h) < 100 or (max(w, h) < 180 and rng.random() < 0.3):
+        rooms.append(box)
+        return
+    vertical = w >= h
+    lo, hi = (x0, x1) if vertical else (y0, y1)
+    cut = int(rng.integers(lo + (hi - lo) // 3, hi - (hi - lo) // 3))
+    span = (y0, y1) if vertical else (x0, x1)
+    door_w = int(rng.integers(14, 26))
+    door = int(rng.integers(span[0] + 4, span[1] - door_w - 4))
+    for a, b in ((span[0], door), (door + door_w, span[1])):
+        if vertical:
+            occ[a:b, cut:cut + wall] = 1
+        else:
+            occ[cut:cut + wall, a:b] = 1
+    first = (x0, y0, cut, y1) if vertical else (x0, y0, x1, cut)
+    second = (cut + wall, y0, x1, y1) if vertical else (x0, cut + wall, x1, y1)
+    _split(rng, first, wall, occ, rooms)
+    _split(rng, second, wall, occ, rooms)
+
+
+def _furnish(
+    rng: np.random.Generator, box: tuple[int, int, int, int], occ: npt.NDArray[np.uint8],
+    inside: npt.NDArray[np.uint8],
+) -> None:
+    """A few boxes and round obstacles per room: outline occupied, interior unknown."""
+    x0, y0, x1, y1 = box
+    for _ in range(int(rng.integers(1, 5))):
+        w, h = (int(v) for v in rng.integers(6, 22, size=2))
+        if x1 - x0 <= w + 17 or y1 - y0 <= h + 17:
+            continue
+        u = int(rng.integers(x0 + 8, x1 - w - 8))
+        v = int(rng.integers(y0 + 8, y1 - h - 8))
+        if rng.random() < 0.6:
+            cv2.rectangle(occ, (u, v), (u + w, v + h), 1, 2)
+            cv2.rectangle(inside, (u + 2, v + 2), (u + w - 2, v + h - 2), 1, -1)
+        else:
+            r = max(3, min(w, h) // 2)
+            cv2.circle(occ, (u + r, v + r), r, 1, 2)
+            if r > 3:
+                cv2.circle(inside, (u + r, v + r), r - 2, 1, -1)
+
+
+def benchmark_match(size: int = 256, repeats: int = 10, seed: int = 0) -> dict[str, float]:
+    """Time :func:`match_ism` for one ``size x size`` ISM misaligned by a few cells and degrees.
+
+    For the bench suite (no printing): the ISM is cut from a synthetic floor plan, the window
+    is :func:`match_window`'s margin around the claimed pose.
+    """
+    params = MatchParams()
+    margin = params.window_margin(size, size)
+    plan = synthetic_floorplan(max(3 * size, 512), seed)
+    win_size = size + 2 * margin
+    c = plan.shape[0] / 2.0
+    truth = Pose2D(4.0, -3.0, math.radians(3.0))
+    rot = cv2.getRotationMatrix2D((c, c), math.degrees(truth.yaw), 1.0)
+    rot[:, 2] += np.array([truth.x, truth.y])
+    moved = cv2.warpAffine(plan, rot, plan.shape[::-1], flags=cv2.INTER_NEAREST)
+    lo = int(c) - size // 2
+    ism = moved[lo:lo + size, lo:lo + size]
+    w0 = int(c) - win_size // 2
+    window = plan[w0:w0 + win_size, w0:w0 + win_size]
+    times = []
+    result = match_ism(ism, window, params)
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = match_ism(ism, window, params)
+        times.append(time.perf_counter() - t0)
+    arr = np.array(times)
+    return {"size": float(size), "window": float(win_size), "repeats": float(repeats),
+            "mean_s": float(arr.mean()), "min_s": float(arr.min()),
+            "median_s": float(np.median(arr)), "accepted": float(result.accepted),
+            "inliers": float(result.inliers)}
