@@ -410,6 +410,21 @@ def atomic_write(path: Path, blob: bytes) -> None:
     _fsync_dir(path.parent)  # the rename itself must survive a power loss
 
 
+def lock_directory(directory: Path) -> int:
+    """Take the exclusive lock of a store directory; returns the fd to ``os.close`` to release.
+
+    ``flock`` dies with its process, so a killed server never leaves a stale lock.
+    """
+    fd = os.open(directory / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise StoreLockedError(f"{directory} is in use by another process (lock {LOCK_FILE}); "
+                               "one writer per store directory") from None
+    return fd
+
+
 class TileStore:
     """A directory of tile files for one map (module docstring: format and guarantees).
 
@@ -417,8 +432,13 @@ class TileStore:
     """
 
     def __init__(self, directory: Path | str, map_name: str, resolution: float, tile_size: int,
-                 frame: str = "map", datum: GeodeticLike | None = None,
-                 level: int = DEFAULT_LEVEL, readonly: bool = False) -> None:
+                 frame: str | None = "map", datum: GeodeticLike | None = None,
+                 level: int = DEFAULT_LEVEL, readonly: bool = False, lock: bool = True) -> None:
+        """``frame``: the map frame every tile must carry (None: any, for inspection tools).
+        ``readonly``: never write, quarantine or delete (for inspection tools).
+        ``lock``: take the directory's exclusive lock (:class:`StoreLockedError` when another
+        process holds it); pass False only when the caller holds it (:func:`lock_directory`).
+        """
         self.directory = Path(directory)
         self.expect = Expectation(map_name, float(resolution), int(tile_size), frame)
         self.level = level
@@ -430,19 +450,10 @@ class TileStore:
         self._lock_fd: int | None = None
         if not readonly:
             self.directory.mkdir(parents=True, exist_ok=True)
-            self._acquire_dir_lock()
+            if lock:
+                self._lock_fd = lock_directory(self.directory)
 
     # -- lifecycle ------------------------------------------------------------------------
-    def _acquire_dir_lock(self) -> None:
-        fd = os.open(self.directory / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise StoreLockedError(f"{self.directory} is in use by another process "
-                                   f"(lock {LOCK_FILE}); one writer per store") from None
-        self._lock_fd = fd
-
     def close(self) -> None:
         """Release the directory lock (the kernel also releases it if the process dies)."""
         if self._lock_fd is not None:

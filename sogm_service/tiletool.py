@@ -1,0 +1,431 @@
+"""``sogm-service tiles ls|export|import``: look at, export and import stored tiles.
+
+Examples::
+
+    sogm-service tiles ls /var/lib/sogm/tiles                 # one line per tile, bad files flagged
+    sogm-service tiles ls /var/lib/sogm/tiles --verify        # also check every payload checksum
+    sogm-service tiles export /var/lib/sogm/tiles --tile 3 -12 --out t.png    # t_<layer>.png
+    sogm-service tiles export DIR --range 0 0 2 1 --out region.npy            # + region.npy.json
+    sogm-service tiles export DIR --box -5 -5 20 10 --layers obstacle --out box.png
+    sogm-service tiles import backup/ --into /var/lib/sogm/tiles --on-conflict newer
+
+``ls`` and ``export`` only read (no lock, no quarantine): they work on a live server's store.
+``import`` takes the store's lock, so stop the server first; every file is fully validated and a
+rejected one is reported with its reason and left where it was.
+
+PNG export: one image per layer, probabilities as grey (free white, occupied black), unknown
+(log-odds exactly 0, or no tile) in a distinct blue tint (:mod:`sogm_service.render`), north up.
+``.npy`` export: the stacked ``(N, H, W)`` int16 fixed-point log-odds (``logodds.SCALE`` units
+per nat, 0 = unknown), with a ``.json`` sidecar naming the layers, resolution and origin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import logodds
+from sogm_service.geometry import TileLattice
+from sogm_service.tilestore import (
+    SUFFIX,
+    StoredTile,
+    StoreLockedError,
+    TileFormatError,
+    TileHeader,
+    TileStore,
+    lock_directory,
+    read_tile_file,
+    read_tile_header,
+    tile_from_bytes,
+)
+
+TileIndex = tuple[int, int]
+MapKey = tuple[str, float, int]  # (map name, resolution, tile size)
+MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an export in memory
+
+
+class ToolError(Exception):
+    """A user-facing failure: printed as one line, exit code 1."""
+
+
+# -- parser ---------------------------------------------------------------------------------
+def add_tiles_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``tiles`` with its sub-commands to an argparse ``add_subparsers()`` object."""
+    tiles = subparsers.add_parser("tiles", help="list, export and import stored tiles",
+                                  description=__doc__,
+                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    _fill_parser(tiles)
+    return tiles
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="sogm-service tiles", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    _fill_parser(parser)
+    return parser
+
+
+def _fill_parser(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="tiles_command", required=True)
+    ls = sub.add_parser("ls", help="list the tiles of a store directory")
+    ls.add_argument("directory", type=Path)
+    ls.add_argument("--verify", action="store_true", help="also check every payload")
+    _map_filter_args(ls)
+    ex = sub.add_parser("export", help="write a tile or a region to PNG or .npy")
+    ex.add_argument("directory", type=Path)
+    ex.add_argument("--out", type=Path, required=True,
+                    help="file.png (one <stem>_<layer>.png per layer) or file.npy")
+    where = ex.add_mutually_exclusive_group(required=True)
+    where.add_argument("--tile", type=int, nargs=2, metavar=("I", "J"))
+    where.add_argument("--range", type=int, nargs=4, metavar=("I0", "J0", "I1", "J1"),
+                       help="tiles I0..I1 x J0..J1 inclusive")
+    where.add_argument("--box", type=float, nargs=4, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
+                       help="metric box in the map frame")
+    ex.add_argument("--layers", default=None, help="comma-separated layers (default all)")
+    ex.add_argument("--scale", type=int, default=1, help="PNG pixels per cell")
+    _map_filter_args(ex)
+    im = sub.add_parser("import", help="validate tile files and copy them into a store")
+    im.add_argument("sources", type=Path, nargs="+", help="tile files or directories")
+    im.add_argument("--into", type=Path, required=True, help="destination store directory")
+    im.add_argument("--on-conflict", choices=["skip", "overwrite", "newer"], default="skip",
+                    help="when the store has the tile already (default %(default)s)")
+
+
+def _map_filter_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--map", default=None, help="only this map")
+    p.add_argument("--resolution", type=float, default=None, help="only this resolution")
+    p.add_argument("--tile-size", type=int, default=None, help="only this tile size")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point used by ``sogm-service tiles ...`` (cli.py delegates here)."""
+    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    return run_tiles(args)
+
+
+def run_tiles(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    """Run a parsed ``tiles`` command; 0 = success, 1 = failure or rejected files."""
+    out = sys.stdout if out is None else out
+    handler = {"ls": cmd_ls, "export": cmd_export, "import": cmd_import}[args.tiles_command]
+    try:
+        return handler(args, out)
+    except (ToolError, StoreLockedError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+# -- scanning -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Entry:
+    """One ``*.tile`` file of a directory: its header, or why it is unusable."""
+
+    path: Path
+    header: TileHeader | None
+    size: int
+    problem: str | None
+
+    @property
+    def key(self) -> MapKey | None:
+        h = self.header
+        return None if h is None else (h.map_name, h.resolution, h.tile_size)
+
+
+def scan(directory: Path, verify: bool = False) -> list[Entry]:
+    """Read every tile header in ``directory`` (``verify``: the whole file)."""
+    if not directory.is_dir():
+        raise ToolError(f"{directory} is not a directory")
+    entries = []
+    for path in sorted(directory.glob(f"*{SUFFIX}")):
+        try:
+            if verify:
+                header = read_tile_file(path).header
+                size = path.stat().st_size
+            else:
+                header, size = read_tile_header(path)
+            entries.append(Entry(path, header, size, None))
+        except (TileFormatError, OSError) as exc:
+            reason = exc.reason if isinstance(exc, TileFormatError) else str(exc)
+            entries.append(Entry(path, None, _size(path), reason))
+    return entries
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _matches(entry: Entry, args: argparse.Namespace) -> bool:
+    h = entry.header
+    if h is None:
+        return True
+    return ((args.map is None or h.map_name == args.map)
+            and (args.resolution is None or math.isclose(h.resolution, args.resolution))
+            and (args.tile_size is None or h.tile_size == args.tile_size))
+
+
+# -- ls -------------------------------------------------------------------------------------
+def cmd_ls(args: argparse.Namespace, out: TextIO) -> int:
+    entries = [e for e in scan(args.directory, args.verify) if _matches(e, args)]
+    print(f"{'map':<12} {'res':>6} {'T':>5} {'i':>6} {'j':>6} {'layers':<28} {'bytes':>9} "
+          f"{'stamp (UTC)':<23} file", file=out)
+    for e in entries:
+        print(_ls_line(e), file=out)
+    bad = sum(e.problem is not None for e in entries)
+    print(f"{len(entries) - bad} tile(s), {bad} bad", file=out)
+    return 1 if bad else 0
+
+
+def _ls_line(e: Entry) -> str:
+    if e.header is None:
+        return f"BAD {e.path.name}: {e.problem}"
+    h = e.header
+    layers = f"{len(h.layers)}: {','.join(h.layers)}"
+    if len(layers) > 28:
+        layers = layers[:27] + "…"
+    return (f"{h.map_name:<12} {h.resolution:>6.3f} {h.tile_size:>5} {h.i:>6} {h.j:>6} "
+            f"{layers:<28} {e.size:>9} {_iso(h.stamp):<23} {e.path.name}")
+
+
+def _iso(stamp: float) -> str:
+    try:
+        return datetime.fromtimestamp(stamp, UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:23]
+    except (OverflowError, OSError, ValueError):
+        return f"{stamp:.3f}"
+
+
+# -- export ---------------------------------------------------------------------------------
+@dataclass
+class Region:
+    """A mosaic of tiles: ``(N, H, W)`` log-odds whose cell (0, 0) corner is ``origin``."""
+
+    layers: list[str]
+    data: npt.NDArray[np.int16]
+    origin: tuple[float, float]
+    resolution: float
+
+
+def cmd_export(args: argparse.Namespace, out: TextIO) -> int:
+    entries = [e for e in scan(args.directory) if _matches(e, args) and e.header is not None]
+    key = _single_map(entries)
+    store = TileStore(args.directory, *key, frame=None, readonly=True)
+    lattice = TileLattice(key[1], key[2])
+    region = _export_region(store, lattice, args)
+    if args.layers:
+        region = _select_layers(region, args.layers.split(","))
+    written = _write_export(region, args.out, args.scale)
+    for path in written:
+        print(f"wrote {path}", file=out)
+    for problem in store.problems:
+        print(f"skipped {problem.path.name}: {problem.reason}", file=out)
+    return 1 if store.problems else 0
+
+
+def _single_map(entries: list[Entry]) -> MapKey:
+    keys = sorted({e.key for e in entries if e.key is not None})
+    if not keys:
+        raise ToolError("no matching tiles in the directory")
+    if len(keys) > 1:
+        listed = ", ".join(f"{m} r={r} T={t}" for m, r, t in keys)
+        raise ToolError(f"several maps here ({listed}); choose with --map/--resolution/"
+                        "--tile-size")
+    return keys[0]
+
+
+def _export_region(store: TileStore, lattice: TileLattice, args: argparse.Namespace) -> Region:
+    if args.tile is not None:
+        i, j = args.tile
+        return mosaic(store, lattice, i, j, i, j)
+    if args.range is not None:
+        i0, j0, i1, j1 = args.range
+        return mosaic(store, lattice, min(i0, i1), min(j0, j1), max(i0, i1), max(j0, j1))
+    return box_region(store, lattice, *args.box)
+
+
+def mosaic(store: TileStore, lattice: TileLattice, i0: int, j0: int, i1: int,
+           j1: int) -> Region:
+    """Tiles ``i0..i1 x j0..j1`` side by side; missing tiles and layers stay unknown (0)."""
+    t = lattice.tile_size
+    w, h = (i1 - i0 + 1) * t, (j1 - j0 + 1) * t
+    if w * h > MAX_EXPORT_CELLS:
+        raise ToolError(f"region of {w}x{h} cells is larger than {MAX_EXPORT_CELLS} per layer")
+    tiles = _load_tiles(store, [(i, j) for j in range(j0, j1 + 1) for i in range(i0, i1 + 1)])
+    if not tiles:
+        raise ToolError(f"no readable tile in i {i0}..{i1}, j {j0}..{j1}")
+    layers = _union_layers(tile.header.layers for tile in tiles)
+    data = np.zeros((len(layers), h, w), dtype=np.int16)
+    for tile in tiles:
+        u, v = (tile.header.i - i0) * t, (tile.header.j - j0) * t
+        for k, name in enumerate(tile.header.layers):
+            data[layers.index(name), v:v + t, u:u + t] = tile.data[k]
+    origin = lattice.tile_origin(i0, j0)
+    return Region(layers, data, (origin.x, origin.y), lattice.resolution)
+
+
+def _load_tiles(store: TileStore, indices: list[TileIndex]) -> list[StoredTile]:
+    tiles = []
+    for i, j in indices:
+        tile = store.load(i, j)
+        if tile is not None:
+            tiles.append(tile)
+    return tiles
+
+
+def _union_layers(names: Iterable[tuple[str, ...]]) -> list[str]:
+    out: list[str] = []
+    for group in names:
+        out.extend(n for n in group if n not in out)
+    return out
+
+
+def box_region(store: TileStore, lattice: TileLattice, xmin: float, ymin: float, xmax: float,
+               ymax: float) -> Region:
+    """The cells meeting the metric box ``[xmin, xmax] x [ymin, ymax]``."""
+    if not (xmax > xmin and ymax > ymin):
+        raise ToolError("the box needs XMIN < XMAX and YMIN < YMAX")
+    (i0, j0), (i1, j1) = lattice.tile_of(xmin, ymin), lattice.tile_of(xmax, ymax)
+    full = mosaic(store, lattice, i0, j0, i1, j1)
+    res = lattice.resolution
+    u0 = math.floor((xmin - full.origin[0]) / res)
+    v0 = math.floor((ymin - full.origin[1]) / res)
+    u1 = math.ceil((xmax - full.origin[0]) / res)
+    v1 = math.ceil((ymax - full.origin[1]) / res)
+    data = full.data[:, v0:v1, u0:u1]
+    return Region(full.layers, np.ascontiguousarray(data),
+                  (full.origin[0] + u0 * res, full.origin[1] + v0 * res), res)
+
+
+def _select_layers(region: Region, names: list[str]) -> Region:
+    missing = [n for n in names if n not in region.layers]
+    if missing:
+        raise ToolError(f"no layer {missing} here; layers are {region.layers}")
+    idx = [region.layers.index(n) for n in names]
+    return Region(names, region.data[idx], region.origin, region.resolution)
+
+
+def _write_export(region: Region, out: Path, scale: int) -> list[Path]:
+    suffix = out.suffix.lower()
+    if suffix == ".npy":
+        return _write_npy(region, out)
+    if suffix == ".png":
+        return _write_pngs(region, out, max(1, scale))
+    raise ToolError(f"--out must end with .png or .npy, got {out.name}")
+
+
+def _write_npy(region: Region, out: Path) -> list[Path]:
+    np.save(out, region.data)
+    side = out.with_name(out.name + ".json")
+    side.write_text(json.dumps({
+        "layers": region.layers, "shape": list(region.data.shape), "dtype": "int16",
+        "units": f"log-odds, {logodds.SCALE:g} per nat, 0 = unknown",
+        "resolution": region.resolution, "origin": list(region.origin),
+        "axes": "[layer, row (y up from origin), column (x)]"}, indent=2) + "\n")
+    return [out, side]
+
+
+def _write_pngs(region: Region, out: Path, scale: int) -> list[Path]:
+    import cv2  # heavy; only export needs it
+
+    from sogm_service.render import probability_image
+
+    written: list[Path] = []
+    used: set[str] = set()
+    for k, name in enumerate(region.layers):
+        stem = _safe(name)
+        if stem in used:
+            stem = f"{stem}_{k}"
+        used.add(stem)
+        path = out.with_name(f"{out.stem}_{stem}.png")
+        layer = region.data[k]
+        img = probability_image(logodds.fixed_to_prob(layer), unknown=layer == 0, scale=scale)
+        if not cv2.imwrite(os.fspath(path), img):
+            raise ToolError(f"could not write {path}")
+        written.append(path)
+    return written
+
+
+def _safe(name: str) -> str:
+    """A layer name as a file-name fragment (``robot1/laser/obstacle`` -> ``robot1-laser-...``)."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", name).strip("-.") or "layer"
+
+
+# -- import ---------------------------------------------------------------------------------
+def cmd_import(args: argparse.Namespace, out: TextIO) -> int:
+    dest: Path = args.into
+    dest.mkdir(parents=True, exist_ok=True)
+    lock_fd = lock_directory(dest)
+    try:
+        stores: dict[MapKey, TileStore] = {}
+        counts = {"imported": 0, "skipped": 0, "rejected": 0}
+        for path in _source_files(args.sources):
+            outcome = _import_one(path, stores, dest, args.on_conflict)
+            counts[outcome.split(":")[0]] += 1
+            print(f"{outcome.split(':')[0]:<8} {path}{_detail(outcome)}", file=out)
+    finally:
+        os.close(lock_fd)
+    print(", ".join(f"{v} {k}" for k, v in counts.items()), file=out)
+    return 1 if counts["rejected"] else 0
+
+
+def _detail(outcome: str) -> str:
+    _, _, detail = outcome.partition(":")
+    return f": {detail}" if detail else ""
+
+
+def _source_files(sources: list[Path]) -> list[Path]:
+    files: list[Path] = []
+    for src in sources:
+        if src.is_dir():
+            files.extend(sorted(src.glob(f"*{SUFFIX}")))
+        elif src.is_file():
+            files.append(src)
+        else:
+            raise ToolError(f"{src} does not exist")
+    return files
+
+
+def _import_one(path: Path, stores: dict[MapKey, TileStore], dest: Path,
+                policy: str) -> str:
+    """One file -> ``"imported"``, ``"skipped:<why>"`` or ``"rejected:<reason>"``."""
+    try:
+        blob = path.read_bytes()
+        header = tile_from_bytes(blob).header
+        store = _store_for(header, stores, dest)
+        existing = store.indexed().get(header.index)
+        if existing is not None and not _replace(existing.header, header, policy):
+            return f"skipped:tile {header.index} exists (stamp {existing.header.stamp})"
+        store.write_bytes(blob)
+    except (TileFormatError, OSError) as exc:
+        return f"rejected:{exc.reason if isinstance(exc, TileFormatError) else exc}"
+    return "imported"
+
+
+def _replace(old: TileHeader, new: TileHeader, policy: str) -> bool:
+    return policy == "overwrite" or (policy == "newer" and new.stamp > old.stamp)
+
+
+def _store_for(header: TileHeader, stores: dict[MapKey, TileStore], dest: Path) -> TileStore:
+    """The destination store of the tile's map; its frame is the one already stored, if any."""
+    key = (header.map_name, header.resolution, header.tile_size)
+    if key not in stores:
+        probe = TileStore(dest, *key, frame=None, readonly=True)
+        frames = {info.header.frame for info in probe.index().values()}
+        frame = frames.pop() if len(frames) == 1 else header.frame
+        store = TileStore(dest, *key, frame=frame, lock=False)
+        store.index()
+        stores[key] = store
+    return stores[key]
+
