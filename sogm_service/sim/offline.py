@@ -1,0 +1,97 @@
+"""Offline mapping: drive simulated robots over a world and fuse their ISMs without Zenoh.
+
+The same pipeline as the map server, in one process: each ISM becomes fixed-point log-odds
+increments (:func:`sogm_service.logodds.increments`), is warped into the part of the map grid it
+covers (:func:`sogm_service.resample.resample_logodds`, biodds by default: the paper's Eq. 5)
+and fused by Eq. 1 (:func:`sogm_service.logodds.bayes_update`).  Used by the paper's Section IV
+evaluation and by tests.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import logodds
+from sogm_service.geometry import GridGeometry
+from sogm_service.resample import Interp, resample_logodds
+from sogm_service.sim.robots import simulate
+from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
+from sogm_service.sim.worlds import World
+
+
+def default_duration(world: World) -> float:
+    """Seconds of driving that cover most of the world with one robot."""
+    return 150.0 if world.kind == "tabletop" else 240.0
+
+
+def covering_window(map_geom: GridGeometry, ism_geom: GridGeometry) -> tuple[int, int, int, int]:
+    """``(u0, v0, u1, v1)``: the block of map cells an ISM grid can touch (clipped; may be
+    empty).  Only that block is resampled and updated, not the whole map."""
+    corners = ism_geom.corners()
+    m = map_geom.world_to_cell()
+    uv = corners @ m[:2, :2].T + m[:2, 2]
+    u0 = max(math.floor(uv[:, 0].min()) - 1, 0)
+    v0 = max(math.floor(uv[:, 1].min()) - 1, 0)
+    u1 = min(math.ceil(uv[:, 0].max()) + 2, map_geom.width)
+    v1 = min(math.ceil(uv[:, 1].max()) + 2, map_geom.height)
+    return u0, v0, u1, v1
+
+
+class OfflineMap:
+    """An in-memory SOGM stack (one int16 log-odds layer per name) on one grid."""
+
+    def __init__(self, geometry: GridGeometry, layers: Sequence[str],
+                 eps0: float = logodds.DEFAULT_EPS0, interp: Interp = "biodds") -> None:
+        self.geometry = geometry
+        self.layers = list(layers)
+        self.state = np.zeros((len(self.layers), *geometry.shape), dtype=logodds.DTYPE)
+        self.eps0 = eps0
+        self.interp: Interp = interp
+        self.limits = logodds.clamp_limits(eps0)
+
+    def fuse(self, ism: SensorIsm) -> None:
+        """Eq. 1 for one ISM on the map cells it covers (unknown layers are ignored)."""
+        if ism.layer not in self.layers:
+            return
+        u0, v0, u1, v1 = covering_window(self.geometry, ism.geometry)
+        if u1 <= u0 or v1 <= v0:
+            return
+        dst = self.geometry.subgrid(u0, v0, u1 - u0, v1 - v0)
+        inc = logodds.increments(ism.prob, logodds.Encoding.PROB_F32, self.eps0)
+        warped = resample_logodds(inc, ism.geometry, dst, self.interp)
+        n = self.layers.index(ism.layer)
+        logodds.bayes_update(self.state[n, v0:v1, u0:u1], warped, self.limits)
+
+    def fuse_all(self, isms: Iterable[SensorIsm]) -> None:
+        for ism in isms:
+            self.fuse(ism)
+
+    def probabilities(self) -> npt.NDArray[np.float32]:
+        """``(N, H, W)`` float32 probabilities (0.5 where nothing was observed)."""
+        return logodds.fixed_to_prob(self.state)
+
+
+def map_world(world: World, seed: int, *, robots: int = 1, duration_s: float | None = None,
+              rate_hz: float = 2.0, odom_noise: float = 0.0,
+              sensors: Sequence[Sensor] | None = None, interp: Interp = "biodds",
+              eps0: float = logodds.DEFAULT_EPS0) -> tuple[list[str], npt.NDArray[np.float32]]:
+    """Map ``world`` with simulated robots; returns layer names and an ``(N, H, W)`` float32
+    probability stack on ``world.geometry``.
+
+    Layers are the sensors' layers in mounting order, e.g. ``["obstacle", "floor", "table"]``
+    for a table-top world.  Deterministic by ``seed``.
+    """
+    suite = default_sensors(world) if sensors is None else list(sensors)
+    layers: list[str] = []
+    for sensor in suite:
+        layers.extend(name for name in sensor.layers() if name not in layers)
+    sogm = OfflineMap(world.geometry, layers, eps0, interp)
+    duration = default_duration(world) if duration_s is None else duration_s
+    for step in simulate(world, robots, duration, rate_hz, seed, odom_noise=odom_noise,
+                         sensors=suite):
+        sogm.fuse_all(step.isms)
+    return layers, sogm.probabilities()
