@@ -204,7 +204,8 @@ def test_one_tile_east_and_north_move_the_datum_by_the_right_angle() -> None:
     assert north.latitude - 45.0 == pytest.approx(12.8 / 111132.95, rel=2e-5)
     assert north.longitude == 7.0
     event = tm.update("r", SPAN * 3 + 1.0, -SPAN + 1.0, 0.0)
-    assert event is not None and event.datum == tm.tile_datum(3, -1)
+    assert event is not None and event.datum is not None
+    assert event.datum == tm.tile_datum(3, -1)
     assert event.datum.longitude == pytest.approx(7.0 + 3 * 12.8 / 78846.8, rel=1e-9)
 
 
