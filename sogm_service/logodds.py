@@ -150,7 +150,9 @@ def increments(
         return prob_to_fixed(p, eps0)
     if encoding is Encoding.LOGODDS_I16:
         return np.clip(data, -MAX_STATE, MAX_STATE).astype(DTYPE)
-    codes = np.ascontiguousarray(data).view(np.uint8)
+    # Bring the codes to the encoding's own 8-bit dtype first: viewing a wider integer array
+    # (e.g. numpy's default int64) as bytes would index the table with every byte of it.
+    codes = np.ascontiguousarray(data, dtype=ENCODING_DTYPES[encoding]).view(np.uint8)
     return increment_lut(encoding, eps0)[codes]
 
 
