@@ -94,7 +94,8 @@ def clamp_limits(eps0: float = DEFAULT_EPS0) -> tuple[int, int]:
 
 def to_fixed(l: npt.ArrayLike) -> Fixed:
     """Float nats -> int16 fixed point, rounded and limited to ``±MAX_STATE``."""
-    scaled = np.rint(np.asarray(l, dtype=np.float64) * SCALE)
+    with np.errstate(over="ignore"):  # |l| > 1.8e305 nats becomes inf, then the clip bound
+        scaled = np.rint(np.asarray(l, dtype=np.float64) * SCALE)
     return np.clip(scaled, -MAX_STATE, MAX_STATE).astype(DTYPE)
 
 
