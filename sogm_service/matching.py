@@ -82,30 +82,37 @@ class MatchParams:
 
     model: Model = "partial_affine"
     # Rendering (step 1)
-    saturation: float = 2.0  # |l| at which a cell renders fully free / occupied
-    known_threshold: float = 0.2  # |l| below this counts as unknown
+    saturation: float = 2.0  # |l| clip of the agreement score
+    known_threshold: float = 0.3  # |l| below this counts as unknown
     free_level: int = 0
-    unknown_level: int = 96
+    unknown_level: int = 40
     occupied_level: int = 255
     blur_sigma: float = 1.0  # ORB is noisy on binary images; a light blur steadies orientation
     # ORB (step 2)
     n_features: int = 800
     scale_factor: float = 1.3
-    n_levels: int = 3
+    n_levels: int = 1  # same resolution on both sides: scale levels only add confusion
     patch_size: int = 23
     fast_threshold: int = 12
+    upright: bool = True  # descriptors at angle 0 (no orientation invariance needed, see detect)
     # Matching (step 3)
-    ratio: float = 0.85  # Lowe's ratio test among gated candidates; 1.0 disables it
+    ratio: float = 1.0  # Lowe's ratio test among gated candidates; 1.0 (default) disables it
     cross_check: bool = True  # keep only mutual best matches
+    candidates: int = 1  # > 1: keep this many best gated candidates, no ratio/cross check
     gate_slack: float = 4.0  # extra cells on top of the correction bounds
     # RANSAC (step 4)
     ransac_threshold: float = 2.0
     ransac_max_iters: int = 2000
     ransac_confidence: float = 0.995
     seed: int = 0
+    # ECC refinement (partial-affine model only)
+    refine: bool = True
+    refine_iters: int = 50
+    refine_kernels: tuple[int, ...] = (15, 5)  # Gaussian kernel per stage, coarse to fine
+    refine_max_shift: float = 6.0  # cells ECC may move the ISM centre away from RANSAC
     # Acceptance (step 5)
     min_features: int = 20
-    min_inliers: int = 12
+    min_inliers: int = 6
     max_translation: float = 20.0
     max_rotation: float = math.radians(15.0)
     max_scale_change: float = 0.05  # |scale - 1|
@@ -195,16 +202,17 @@ def to_nats(l: npt.ArrayLike) -> npt.NDArray[np.float32]:
 def render_u8(l_nats: npt.NDArray[np.float32], params: MatchParams) -> Image:
     """Log-odds -> 8-bit image keeping free, unknown and occupied distinct (III-C.2 step 1).
 
-    Piecewise linear in ``clip(l / saturation, -1, 1)`` between ``free_level``,
-    ``unknown_level`` (at ``l = 0``) and ``occupied_level``; weak evidence stays near unknown.
+    Ternary by ``known_threshold``, not proportional to the evidence: an ISM and a map that
+    has seen many ISMs differ in magnitude but must look alike.  Unknown sits just above free
+    (not mid-grey) so that the edge of a sensor's field of view - which the map does not share
+    - is weak, while occupied structure, which both share, is strong.
     """
-    t = np.clip(l_nats / np.float32(params.saturation), -1.0, 1.0)
-    up = np.float32(params.occupied_level - params.unknown_level)
-    down = np.float32(params.unknown_level - params.free_level)
-    g = np.float32(params.unknown_level) + np.where(t > 0, t * up, t * down)
-    img = np.rint(g).astype(np.uint8)
+    t = np.float32(params.known_threshold)
+    img = np.full(l_nats.shape, params.unknown_level, np.uint8)
+    img[l_nats >= t] = params.occupied_level
+    img[l_nats <= -t] = params.free_level
     if params.blur_sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), params.blur_sigma)
+        return np.asarray(cv2.GaussianBlur(img, (0, 0), params.blur_sigma), dtype=np.uint8)
     return img
 
 
@@ -272,7 +280,13 @@ def detect(img: Image, params: MatchParams) -> _Features:
         edgeThreshold=params.patch_size, patchSize=params.patch_size,
         fastThreshold=params.fast_threshold, scoreType=cv2.ORB_HARRIS_SCORE,
     )
-    kps, desc = orb.detectAndCompute(padded, None)
+    kps = orb.detect(padded, None)
+    if params.upright:
+        # The window is resampled in the claimed ISM frame, so the residual rotation is small;
+        # ORB's intensity-centroid angle differs between a partial view and the map.
+        kps = [cv2.KeyPoint(kp.pt[0], kp.pt[1], kp.size, 0.0, kp.response, kp.octave)
+               for kp in kps]
+    kps, desc = orb.compute(padded, kps)
     if desc is None or len(kps) == 0:
         return _Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8))
     pts = np.array([kp.pt for kp in kps], dtype=np.float32) - np.float32(pad)
@@ -313,6 +327,13 @@ def match_pairs(
 ) -> tuple[Points, Points]:
     """Hamming matching among gated candidates: ratio test, then optional cross check."""
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    if params.candidates > 1:
+        # Weak descriptors (a partial view against a map): keep the k best gated candidates
+        # and let RANSAC find the consistent ones.
+        knn = bf.knnMatch(ism.descriptors, win.descriptors, k=params.candidates, mask=mask)
+        pairs = np.array([(m.queryIdx, m.trainIdx) for c in knn for m in c],
+                         dtype=np.int64).reshape(-1, 2)
+        return ism.points[pairs[:, 0]], win.points[pairs[:, 1]]
     knn = bf.knnMatch(ism.descriptors, win.descriptors, k=2, mask=mask)
     fwd: dict[int, int] = {}
     for cand in knn:
@@ -351,6 +372,44 @@ def estimate(src: Points, dst: Points, params: MatchParams) -> tuple[Matrix3 | N
     if m is None or not np.all(np.isfinite(m)) or inl is None:
         return None, 0
     return m, int(np.count_nonzero(inl))
+
+
+def refine_ecc(
+    ism_img: Image, ism_known: npt.NDArray[np.bool_], win_img: Image, matrix: Matrix3,
+    params: MatchParams,
+) -> Matrix3 | None:
+    """Sub-cell rigid refinement of a RANSAC model by ECC (enhanced correlation coefficient).
+
+    ORB keypoints sit on a (pyramid) pixel lattice and a partial view yields few inliers, so
+    the feature estimate alone is good to a cell or two; ECC aligns the rendered images
+    directly, coarse to fine.  The window is the template and the ISM the input, so the ISM's
+    known mask can be passed as ECC's input mask: the ISM's unknown cells never count.
+    ``None`` when ECC fails to converge.
+    """
+    w = np.asarray(np.linalg.inv(_rigid_about_centre(matrix, ism_img.shape)), np.float32)[:2]
+    tmpl = win_img.astype(np.float32)
+    inp = ism_img.astype(np.float32)
+    mask = ism_known.astype(np.uint8)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.refine_iters, 1e-4)
+    try:
+        for ksize in params.refine_kernels:
+            _, found = cv2.findTransformECC(tmpl, inp, w, cv2.MOTION_EUCLIDEAN, crit, mask,
+                                            ksize)
+            w = np.asarray(found, dtype=np.float32)
+    except cv2.error:
+        return None
+    full = np.vstack([np.asarray(w, dtype=np.float64), [0.0, 0.0, 1.0]])
+    return np.asarray(np.linalg.inv(full), dtype=np.float64)
+
+
+def _rigid_about_centre(matrix: Matrix3, shape: tuple[int, int]) -> Matrix3:
+    """The rigid part of a similarity, keeping where the ISM's centre lands."""
+    c = ism_centre(shape)
+    theta = math.atan2(matrix[1, 0], matrix[0, 0])
+    cs, sn = math.cos(theta), math.sin(theta)
+    target = apply(matrix, c[None])[0]
+    t = target - np.array([cs * c[0] - sn * c[1], sn * c[0] + cs * c[1]])
+    return np.array([[cs, -sn, t[0]], [sn, cs, t[1]], [0.0, 0.0, 1.0]])
 
 
 def fit_similarity(src: npt.NDArray, dst: npt.NDArray) -> Matrix3:
@@ -440,21 +499,48 @@ def _judge(
     return None
 
 
-def _quality(
-    ism: npt.NDArray[np.float32], win: npt.NDArray[np.float32], prior: Matrix3,
-    matrix: Matrix3, params: MatchParams,
-) -> tuple[MatchReason, float, float]:
-    """The quality check: agreement with the map before and after the correction."""
-    before, _ = agreement(warp_into(ism, prior, win.shape), win, params)
-    after, n_after = agreement(warp_into(ism, matrix, win.shape), win, params)
+def _score(
+    ism: npt.NDArray[np.float32], win: npt.NDArray[np.float32], matrix: Matrix3,
+    params: MatchParams,
+) -> tuple[float, int]:
+    """Agreement of the ISM placed by ``matrix`` with the window, and the overlap."""
+    return agreement(warp_into(ism, matrix, win.shape), win, params)
+
+
+def _verdict(before: float, after: float, n_after: int, params: MatchParams) -> MatchReason:
+    """The quality check: the corrected ISM must agree with the map, and better than before."""
     if n_after < params.min_overlap:
-        return MatchReason.TOO_LITTLE_OVERLAP, before, after
-    # NaN compares False: an undefined score (constant cells) never counts as an improvement.
+        return MatchReason.TOO_LITTLE_OVERLAP
+    # NaN compares False: an undefined score (constant cells) never counts as agreement.
     if not after >= params.min_score:
-        return MatchReason.POOR_AGREEMENT, before, after
+        return MatchReason.POOR_AGREEMENT
     if not math.isnan(before) and not after >= before + params.min_gain:
-        return MatchReason.NO_IMPROVEMENT, before, after
-    return MatchReason.OK, before, after
+        return MatchReason.NO_IMPROVEMENT
+    return MatchReason.OK
+
+
+def _refined(
+    m: Matrix3, imgs: tuple[Image, Image], ism: npt.NDArray[np.float32],
+    win: npt.NDArray[np.float32], params: MatchParams,
+) -> tuple[Matrix3, float, int, bool]:
+    """The better of the RANSAC model and its ECC refinement, by agreement with the map.
+
+    Returns the matrix, its score and overlap, and whether the refinement was taken.
+    """
+    score, n = _score(ism, win, m, params)
+    if not params.refine or params.model != "partial_affine":
+        return m, score, n, False
+    known = np.abs(ism) >= params.known_threshold
+    r = refine_ecc(imgs[0], known, imgs[1], m, params)
+    if r is None:
+        return m, score, n, False
+    c = ism_centre(ism.shape)[None]
+    if float(np.hypot(*(apply(r, c) - apply(m, c))[0])) > params.refine_max_shift:
+        return m, score, n, False  # ECC wandered off to another optimum
+    score_r, n_r = _score(ism, win, r, params)
+    if score_r > score or math.isnan(score):
+        return r, score_r, n_r, True
+    return m, score, n, False
 
 
 def match_ism(
@@ -477,8 +563,9 @@ def match_ism(
     if ism.ndim != 2 or win.ndim != 2:
         raise ValueError("ISM and map window must be 2-D grids")
     pr = default_prior(ism.shape, win.shape) if prior is None else np.asarray(prior, np.float64)
-    f_ism = detect(render_u8(ism, p), p)
-    f_win = detect(render_u8(win, p), p)
+    imgs = (render_u8(ism, p), render_u8(win, p))
+    f_ism = detect(imgs[0], p)
+    f_win = detect(imgs[1], p)
 
     def done(reason: MatchReason, **kw: object) -> MatchResult:
         fields: dict[str, object] = {
@@ -497,13 +584,18 @@ def match_ism(
     m, inliers = estimate(src, dst, p)
     if m is None:
         return done(MatchReason.NO_TRANSFORM, n_matches=len(src))
+    if inliers < p.min_inliers:
+        return done(MatchReason.TOO_FEW_INLIERS, matrix=m, n_matches=len(src), inliers=inliers,
+                    correction=correction_of(m, pr, ism.shape)[0])
+    m, after, n_after, refined = _refined(m, imgs, ism, win, p)
     corr, distortion = correction_of(m, pr, ism.shape)
-    found = {"correction": corr, "matrix": m, "n_matches": len(src), "inliers": inliers}
+    found = {"correction": corr, "matrix": m, "n_matches": len(src), "inliers": inliers,
+             "score_after": after, "details": {"refined": float(refined)}}
     refused = _judge(corr, distortion, inliers, p)
     if refused is not None:
         return done(refused, **found)
-    reason, before, after = _quality(ism, win, pr, m, p)
-    return done(reason, score_before=before, score_after=after, **found)
+    before, _ = _score(ism, win, pr, p)
+    return done(_verdict(before, after, n_after, p), score_before=before, **found)
 
 
 def corrected_geometry(
