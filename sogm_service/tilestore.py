@@ -234,11 +234,11 @@ def _header_json(header: TileHeader, level: int, raw_len: int, payload: bytes) -
 
 def parse_prefix(head: bytes) -> tuple[int, int]:
     """``(header_len, bytes before the payload)`` from the first 16 bytes, or TileFormatError."""
+    if head[:len(MAGIC)] != MAGIC[:len(head)]:
+        raise TileFormatError(f"not a tile file (magic {bytes(head[:len(MAGIC)])!r})")
     if len(head) < _PREFIX.size:
         raise TileFormatError(f"truncated: {len(head)} bytes, shorter than the fixed prefix")
-    magic, version, _, hlen = _PREFIX.unpack_from(head)
-    if magic != MAGIC:
-        raise TileFormatError(f"not a tile file (magic {magic!r})")
+    _, version, _, hlen = _PREFIX.unpack_from(head)
     if version != FORMAT_VERSION:
         raise TileFormatError(f"unsupported format version {version} (this reads "
                               f"{FORMAT_VERSION})")

@@ -53,6 +53,7 @@ from sogm_service.tilestore import (
 
 TileIndex = tuple[int, int]
 MapKey = tuple[str, float, int]  # (map name, resolution, tile size)
+_CELL_EPS = 1e-9
 MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an export in memory
 
 
@@ -299,10 +300,11 @@ def box_region(store: TileStore, lattice: TileLattice, xmin: float, ymin: float,
     (i0, j0), (i1, j1) = lattice.tile_of(xmin, ymin), lattice.tile_of(xmax, ymax)
     full = mosaic(store, lattice, i0, j0, i1, j1)
     res = lattice.resolution
-    u0 = math.floor((xmin - full.origin[0]) / res)
-    v0 = math.floor((ymin - full.origin[1]) / res)
-    u1 = math.ceil((xmax - full.origin[0]) / res)
-    v1 = math.ceil((ymax - full.origin[1]) / res)
+    # The tolerance keeps 0.3 / 0.1 = 2.9999999999999996 from grabbing one more cell.
+    u0 = math.floor((xmin - full.origin[0]) / res + _CELL_EPS)
+    v0 = math.floor((ymin - full.origin[1]) / res + _CELL_EPS)
+    u1 = math.ceil((xmax - full.origin[0]) / res - _CELL_EPS)
+    v1 = math.ceil((ymax - full.origin[1]) / res - _CELL_EPS)
     data = full.data[:, v0:v1, u0:u1]
     return Region(full.layers, np.ascontiguousarray(data),
                   (full.origin[0] + u0 * res, full.origin[1] + v0 * res), res)
