@@ -269,14 +269,15 @@ def parse_header(head: bytes) -> tuple[TileHeader, dict[str, Any], int]:
 
 def _header_from_fields(f: dict[str, Any]) -> TileHeader:
     layers = f["layers"]
-    if not (isinstance(layers, list) and len(layers) <= _MAX_LAYERS):
+    if not (isinstance(layers, list) and len(layers) <= _MAX_LAYERS
+            and all(isinstance(n, str) for n in layers)):
         raise TileFormatError("header 'layers' must be a list of at most "
-                              f"{_MAX_LAYERS} names")
+                              f"{_MAX_LAYERS} strings")
     datum = f["datum"]
     header = TileHeader(
         map_name=_typed(f, "map", str), frame=_typed(f, "frame", str), i=_typed(f, "i", int),
         j=_typed(f, "j", int), resolution=float(_typed(f, "resolution", (int, float))),
-        tile_size=_typed(f, "tile_size", int), layers=tuple(str(n) for n in layers),
+        tile_size=_typed(f, "tile_size", int), layers=tuple(layers),
         stamp=float(_typed(f, "stamp", (int, float))),
         datum=None if datum is None else GeoPoint(float(datum["latitude"]),
                                                   float(datum["longitude"]),
