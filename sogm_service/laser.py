@@ -13,7 +13,8 @@ warps it into the map (resampling handles the rotation).
 Ranges at or beyond ``max_range`` are "no return": free up to ``max_range``, no hit.  So
 ``max_range`` is the ISM's *usable* range and may be smaller than the device's (e.g. 20 m for a
 log whose device reports 81.9 m for no return); a tilted laser passes its floor-hit range.
-Non-finite or non-positive ranges are dropped (the beam contributes nothing).
+Non-finite or non-positive ranges, and optionally the device's own "no return" readings
+(``device_max_range``), are dropped: the beam contributes nothing.
 
 Ray casting is vectorised: every beam is sampled at half-cell steps in one
 ``(beams, samples)`` array; no per-cell or per-beam Python loops.
@@ -34,20 +35,21 @@ UNKNOWN_P = 0.5
 FloatArray = npt.NDArray[np.float32]
 
 
-def scan_points(ranges: npt.ArrayLike, angles: npt.ArrayLike, max_range: float,
-                min_range: float = 0.0) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_],
-                                                 npt.NDArray[np.bool_]]:
+def scan_points(
+    ranges: npt.ArrayLike, angles: npt.ArrayLike, max_range: float, min_range: float = 0.0,
+    device_max_range: float = math.inf,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
     """Beam geometry in the sensor frame.
 
     Returns ``(ends, valid, hit)``: ``(B, 2)`` end points with ranges clipped at ``max_range``,
-    which beams are usable at all (finite, above ``min_range``), and which of them hit
-    something (``range < max_range``).
+    which beams are usable at all (finite, above ``min_range``, below ``device_max_range``),
+    and which of them hit something (``range < max_range``).
     """
     r = np.asarray(ranges, dtype=np.float64).ravel()
     a = np.asarray(angles, dtype=np.float64).ravel()
     if r.shape != a.shape:
         raise ValueError(f"{r.size} ranges but {a.size} angles")
-    valid = np.isfinite(r) & np.isfinite(a) & (r > max(min_range, 0.0))
+    valid = np.isfinite(r) & np.isfinite(a) & (r > max(min_range, 0.0)) & (r < device_max_range)
     hit = valid & (r < max_range)
     rc = np.where(valid, np.minimum(r, max_range), 0.0)
     ends = np.stack([rc * np.cos(a), rc * np.sin(a)], axis=1)
@@ -72,6 +74,7 @@ def laser_ism(
     p_occ: float = 0.8,
     hit_width_cells: int = 1,
     min_range: float = 0.0,
+    device_max_range: float = math.inf,
 ) -> tuple[GridGeometry, FloatArray]:
     """Ray-cast ISM of one scan: ``(geometry, float32 probabilities)``, unknown exactly 0.5.
 
@@ -79,6 +82,8 @@ def laser_ism(
     axis) are 1-D of equal length; ``sensor_pose`` is the sensor's pose in the map frame.
     ``hit_width_cells`` (odd or even >= 1) widens each hit to a square of that many cells, for
     scans whose range noise exceeds a cell.  Occupied wins over free where beams disagree.
+    Readings at or beyond ``device_max_range`` are the device's "no return" and are dropped
+    (as gmapping does): glass and open doors would otherwise paint long free rays.
     """
     if not (resolution > 0 and math.isfinite(resolution)):
         raise ValueError(f"resolution must be positive, got {resolution}")
@@ -86,9 +91,9 @@ def laser_ism(
         raise ValueError(f"max_range must be positive and finite, got {max_range}")
     if hit_width_cells < 1:
         raise ValueError("hit_width_cells must be >= 1")
-    ends, valid, hit = scan_points(ranges, angles, max_range, min_range)
+    ends, valid, hit = scan_points(ranges, angles, max_range, min_range, device_max_range)
     geom, corner = _sensor_box(ends[valid], sensor_pose, resolution, hit_width_cells)
-    free = _free_mask(ends[valid], corner, geom)
+    free = _free_mask(ends[valid], hit[valid], corner, geom)
     occ = _hit_mask(ends[hit], corner, geom, hit_width_cells)
     p = np.full(geom.shape, UNKNOWN_P, dtype=np.float32)
     p[free] = p_free
@@ -111,9 +116,13 @@ def _sensor_box(ends: npt.NDArray[np.float64], sensor_pose: Pose2D, resolution: 
     return GridGeometry(resolution, width, height, origin), corner
 
 
-def _free_mask(ends: npt.NDArray[np.float64], corner: npt.NDArray[np.float64],
-               geom: GridGeometry) -> npt.NDArray[np.bool_]:
-    """Cells crossed by any beam, sampled at half-cell steps from the sensor to its end."""
+def _free_mask(ends: npt.NDArray[np.float64], hit: npt.NDArray[np.bool_],
+               corner: npt.NDArray[np.float64], geom: GridGeometry) -> npt.NDArray[np.bool_]:
+    """Cells crossed by any beam, sampled at half-cell steps from the sensor to its end.
+
+    Beams that hit stop a cell short of the hit: a surface seen at a grazing angle by other
+    beams should not be erased by their last free samples.
+    """
     mask = np.zeros(geom.shape, dtype=bool)
     if len(ends) == 0:
         return mask
@@ -121,7 +130,8 @@ def _free_mask(ends: npt.NDArray[np.float64], corner: npt.NDArray[np.float64],
     lengths = np.hypot(ends[:, 0], ends[:, 1])
     step = 0.5 * res
     t = np.arange(int(np.ceil(lengths.max() / step)) + 1) * step  # (S,)
-    keep = t[None, :] < lengths[:, None]  # (B, S): stop short of the end cell
+    stop = lengths - np.where(hit, res, 0.0)
+    keep = t[None, :] < stop[:, None]  # (B, S)
     with np.errstate(invalid="ignore", divide="ignore"):
         direction = ends / np.where(lengths > 0, lengths, 1.0)[:, None]
     u = np.floor((direction[:, 0:1] * t - corner[0]) / res).astype(np.int64)

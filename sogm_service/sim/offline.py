@@ -1,4 +1,4 @@
-"""Offline mapping: drive simulated robots over a world and fuse their ISMs without Zenoh.
+"""Offline mapping without Zenoh: simulated robots over a world, or a recorded laser log.
 
 The same pipeline as the map server, in one process: each ISM becomes fixed-point log-odds
 increments (:func:`sogm_service.logodds.increments`), is warped into the part of the map grid it
@@ -16,7 +16,9 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service import logodds
-from sogm_service.geometry import GridGeometry
+from sogm_service.carmen import LaserScan
+from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.laser import laser_ism
 from sogm_service.resample import Interp, resample_logodds
 from sogm_service.sim.robots import simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
@@ -95,3 +97,35 @@ def map_world(world: World, seed: int, *, robots: int = 1, duration_s: float | N
                          sensors=suite):
         sogm.fuse_all(step.isms)
     return layers, sogm.probabilities()
+
+
+def map_scans(scans: Iterable[LaserScan], resolution: float = 0.05, usable_range: float = 20.0,
+              *, layer: str = "obstacle", margin: float = 1.0, interp: Interp = "biodds",
+              eps0: float = logodds.DEFAULT_EPS0, p_free: float = 0.3, p_occ: float = 0.8,
+              hit_width_cells: int = 1) -> tuple[GridGeometry, npt.NDArray[np.float32]]:
+    """Fuse recorded laser scans (e.g. :func:`sogm_service.carmen.read_carmen`) offline.
+
+    The device's no-return readings (``>= scan.max_range``) are dropped; readings beyond
+    ``usable_range`` are free up to it.  The map is the axis-aligned grid around every beam end
+    plus ``margin``; returns its geometry and the
+    ``(H, W)`` float32 occupancy probabilities.  ``p_free``, ``p_occ`` and ``hit_width_cells``
+    go to :func:`sogm_service.laser.laser_ism`.
+    """
+    isms = []
+    for scan in scans:
+        max_r = min(usable_range, scan.max_range)
+        geom, p = laser_ism(scan.ranges, scan.angles, scan.pose, resolution, max_r,
+                            device_max_range=scan.max_range, p_free=p_free, p_occ=p_occ,
+                            hit_width_cells=hit_width_cells)
+        isms.append(SensorIsm(layer, geom, p, "laser"))
+    if not isms:
+        raise ValueError("no scans to map")
+    corners = np.vstack([i.geometry.corners() for i in isms])
+    lo = np.floor((corners.min(axis=0) - margin) / resolution) * resolution
+    hi = np.ceil((corners.max(axis=0) + margin) / resolution) * resolution
+    size = np.rint((hi - lo) / resolution).astype(int)
+    geom = GridGeometry(resolution, int(size[0]), int(size[1]),
+                        Pose2D(float(lo[0]), float(lo[1]), 0.0))
+    sogm = OfflineMap(geom, [layer], eps0, interp)
+    sogm.fuse_all(isms)
+    return geom, sogm.probabilities()[0]
