@@ -540,7 +540,11 @@ class TileStore:
         return None if got is None else got[0]
 
     def load(self, i: int, j: int) -> StoredTile | None:
-        """Tile ``(i, j)`` from disk, or None when absent or rejected (then quarantined)."""
+        """Tile ``(i, j)`` from disk, or None when absent or rejected (then quarantined).
+
+        Other I/O errors (EIO, EMFILE, permissions) propagate: they may be transient, and
+        answering None would let the caller start an empty tile that later overwrites the file.
+        """
         got = self._read_valid(i, j)
         return None if got is None else got[1]
 

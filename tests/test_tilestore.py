@@ -16,6 +16,8 @@ import pytest
 
 from sogm_service import logodds
 from sogm_service.geodesy import GeoPoint
+from sogm_service.geometry import TileLattice
+from sogm_service.tilemanager import TileManager
 from sogm_service.tilestore import (
     MAGIC,
     QUARANTINE_DIR,
@@ -78,6 +80,8 @@ def test_round_trip_through_a_file(tmp_path: Path) -> None:
     assert h.layers == tuple(LAYERS) and h.stamp == 123.25 and h.scale == logodds.SCALE
     assert h.origin == pytest.approx((3 * RES * T, -12 * RES * T))
     assert h.datum is not None and h.datum.latitude < 48.0 < h.datum.latitude + 0.01
+    manager = TileManager(TileLattice(RES, T), 0.5, 1, datum=GeoPoint(48.0, 11.0, 500.0))
+    assert h.datum == manager.tile_datum(3, -12)  # events and files agree on the datum
     assert index[(3, -12)].header == h
     layers, arr, stamp = again.loader(3, -12)  # type: ignore[misc]
     assert layers == LAYERS and stamp == 123.25 and np.array_equal(arr, data)
