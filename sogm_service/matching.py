@@ -486,7 +486,7 @@ def match_window(ism_geom: GridGeometry, params: MatchParams) -> GridGeometry:
     return ism_geom.subgrid(-m, -m, ism_geom.width + 2 * m, ism_geom.height + 2 * m)
 
 
-def _judge(
+def check_correction(
     corr: Correction, distortion: float, inliers: int, params: MatchParams
 ) -> MatchReason | None:
     """Acceptance rules that need no map cells; ``None`` when they all pass."""
@@ -591,7 +591,7 @@ def match_ism(
     corr, distortion = correction_of(m, pr, ism.shape)
     found = {"correction": corr, "matrix": m, "n_matches": len(src), "inliers": inliers,
              "score_after": after, "details": {"refined": float(refined)}}
-    refused = _judge(corr, distortion, inliers, p)
+    refused = check_correction(corr, distortion, inliers, p)
     if refused is not None:
         return done(refused, **found)
     before, _ = _score(ism, win, pr, p)
@@ -615,7 +615,8 @@ def corrected_geometry(
     shape = ism_geom.shape
     pts = np.vstack([ism_corners(shape), ism_centre(shape)])
     a = window_geom.cell_to_world() @ fit_similarity(pts, apply(result.matrix, pts))
-    res = ism_geom.resolution * (math.hypot(a[0, 0], a[1, 0]) if keep_scale else 1.0)
+    # ``a`` maps ISM cells to metres, so its scale is the corrected resolution itself.
+    res = math.hypot(a[0, 0], a[1, 0]) if keep_scale else ism_geom.resolution
     yaw = math.atan2(a[1, 0], a[0, 0])
     # Keep the corrected centre; rebuild the corner (origin) from it with the chosen resolution.
     centre_world = apply(a, ism_centre(shape)[None])[0]

@@ -1,0 +1,394 @@
+"""Scan matching of misaligned ISMs (paper III-C.2): synthetic recovery, refusals, geometry.
+
+Every synthetic case is seeded.  An ISM is cut from a synthetic floor plan at a *true* pose; the
+robot *claims* a pose shifted by up to 10 cells and rotated by up to 10 degrees; the map window
+is resampled around the claimed pose.  A match passes when the corrected ISM geometry puts the
+ISM's centre within 1 cell of the truth and its heading within 1 degree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from sogm_service import logodds
+from sogm_service import matching as mt
+from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.resample import resample_logodds
+
+RES = 0.05
+PLAN = 640
+ISM = 160
+N_CASES = 40
+
+
+@dataclass(frozen=True)
+class Case:
+    ism: npt.NDArray[np.int16]
+    truth: GridGeometry
+    claimed: GridGeometry
+    window_geom: GridGeometry
+    window: npt.NDArray[np.int16]
+
+    def match(self, params: mt.MatchParams) -> mt.MatchResult:
+        return mt.match_ism(self.ism, self.window, params,
+                            mt.prior_matrix(self.claimed, self.window_geom))
+
+    def errors(self, geom: GridGeometry) -> tuple[float, float]:
+        """(centre error in cells, heading error in degrees) of ``geom`` against the truth."""
+        return centre_error(geom, self.truth), heading_error(geom, self.truth)
+
+
+def centre(g: GridGeometry) -> npt.NDArray[np.float64]:
+    return (g.cell_to_world() @ np.array([(g.width - 1) / 2, (g.height - 1) / 2, 1.0]))[:2]
+
+
+def centre_error(a: GridGeometry, b: GridGeometry) -> float:
+    return float(np.hypot(*(centre(a) - centre(b)))) / RES
+
+
+def heading_error(a: GridGeometry, b: GridGeometry) -> float:
+    d = (a.origin.yaw - b.origin.yaw + math.pi) % (2 * math.pi) - math.pi
+    return abs(math.degrees(d))
+
+
+def grid_at(cx: float, cy: float, yaw: float, n: int = ISM) -> GridGeometry:
+    """An ``n x n`` ISM geometry whose centre is at plan cell ``(cx, cy)`` with heading ``yaw``."""
+    corner = Pose2D(cx * RES, cy * RES, yaw).compose(Pose2D(-n * RES / 2, -n * RES / 2, 0.0))
+    return GridGeometry(RES, n, n, corner)
+
+
+def laser_view(full: npt.NDArray[np.int16], rng: np.random.Generator,
+               beams: int = 540, noise: float = 0.005) -> npt.NDArray[np.int16]:
+    """What a 360-degree laser at the ISM's centre sees of ``full``: free up to the first
+    occupied cell, that cell occupied, the rest unknown; mild ISM log-odds and a little noise."""
+    n = full.shape[0]
+    c = (n - 1) / 2
+    ang = np.linspace(-math.pi, math.pi, beams, endpoint=False)
+    steps = np.arange(0.0, n * 0.71, 0.5)
+    iu = np.rint(c + np.cos(ang)[:, None] * steps).astype(np.int64)
+    iv = np.rint(c + np.sin(ang)[:, None] * steps).astype(np.int64)
+    inside = (iu >= 0) & (iv >= 0) & (iu < n) & (iv < n)
+    occ = np.zeros(inside.shape, bool)
+    occ[inside] = full[iv[inside], iu[inside]] > 0
+    first = np.where(occ.any(axis=1), occ.argmax(axis=1), len(steps))[:, None]
+    k = np.arange(len(steps))[None, :]
+    out = np.zeros((n, n), np.float32)
+    free, hit = inside & (k < first), inside & (k == first)
+    out[iv[free], iu[free]] = -0.85  # P = 0.3
+    out[iv[hit], iu[hit]] = 1.4  # P = 0.8
+    flip = (rng.random((n, n)) < noise) & (out != 0)
+    out[flip] = -out[flip]
+    return logodds.to_fixed(out)
+
+
+def make_case(seed: int, params: mt.MatchParams, laser: bool = False, shift: float = 10.0,
+              rot_deg: float = 10.0) -> Case:
+    """A seeded misaligned ISM: random place (in free space), heading, shift and rotation."""
+    plan = mt.synthetic_floorplan(PLAN, seed=seed)
+    rng = np.random.default_rng(1000 + seed)
+    lo = params.window_margin(ISM, ISM) + ISM * 0.75
+    while True:
+        cx, cy = rng.uniform(lo, PLAN - lo, size=2)
+        if plan[int(cy), int(cx)] < 0:
+            break
+    yaw = rng.uniform(-math.pi, math.pi)
+    r, a = rng.uniform(0.0, shift), rng.uniform(0.0, 2 * math.pi)
+    dyaw = math.radians(rng.uniform(-rot_deg, rot_deg))
+    truth = grid_at(cx, cy, yaw)
+    claimed = grid_at(cx + r * math.cos(a), cy + r * math.sin(a), yaw + dyaw)
+    plan_geom = GridGeometry(RES, PLAN, PLAN)
+    ism = resample_logodds(plan, plan_geom, truth, "nearest")
+    if laser:
+        ism = laser_view(ism, rng)
+    window_geom = mt.match_window(claimed, params)
+    window = resample_logodds(plan, plan_geom, window_geom, "biodds")
+    return Case(ism, truth, claimed, window_geom, window)
+
+
+def run_cases(params: mt.MatchParams, laser: bool) -> tuple[list[mt.MatchResult],
+                                                           list[tuple[float, float]]]:
+    """Results and (centre, heading) errors of the corrected geometry (inf when no model)."""
+    results, errors = [], []
+    for seed in range(N_CASES):
+        case = make_case(seed, params, laser)
+        res = case.match(params)
+        results.append(res)
+        if res.matrix is None:
+            errors.append((math.inf, math.inf))
+        else:
+            errors.append(case.errors(mt.corrected_geometry(case.claimed, case.window_geom, res)))
+    return results, errors
+
+
+def recovered(res: mt.MatchResult, err: tuple[float, float]) -> bool:
+    return res.accepted and err[0] <= 1.0 and err[1] <= 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Recovery
+
+
+@pytest.mark.parametrize("model", ["partial_affine", "homography"])
+def test_cut_isms_are_recovered_within_a_cell_and_a_degree(model: mt.Model) -> None:
+    params = mt.MatchParams(model=model)
+    results, errors = run_cases(params, laser=False)
+    ok = sum(recovered(r, e) for r, e in zip(results, errors, strict=True))
+    assert ok >= math.ceil(0.95 * N_CASES), Counter(r.reason for r in results)
+    # The claimed poses were wrong by up to 10 cells / 10 degrees: the matcher did the work.
+    shifts = [r.correction.translation for r in results if r.correction is not None]
+    assert max(shifts) > 5.0
+
+
+def test_partial_laser_views_are_recovered_or_refused_never_wrong() -> None:
+    """A laser sees one room of the plan: fewer features; what is accepted must be right."""
+    params = mt.MatchParams()
+    results, errors = run_cases(params, laser=True)
+    accepted = [(r, e) for r, e in zip(results, errors, strict=True) if r.accepted]
+    wrong = [e for r, e in accepted if not recovered(r, e)]
+    assert not wrong
+    assert len(accepted) >= 0.6 * N_CASES, Counter(r.reason for r in results)
+
+
+def test_refinement_makes_partial_views_sub_cell() -> None:
+    """ECC refinement: without it the ORB-only estimate of a partial view is off by cells."""
+    base = mt.MatchParams()
+    cases = [make_case(seed, base, laser=True) for seed in range(12)]
+    mean_err = {}
+    for refine in (False, True):
+        params = replace(base, refine=refine)
+        errs = []
+        for case in cases:
+            res = case.match(params)
+            if res.matrix is not None and res.inliers >= params.min_inliers:
+                geom = mt.corrected_geometry(case.claimed, case.window_geom, res)
+                errs.append(case.errors(geom)[0])
+        mean_err[refine] = float(np.mean(errs))
+    assert mean_err[True] < 0.5 < mean_err[False]
+
+
+def test_correct_claim_gives_a_near_zero_accepted_correction() -> None:
+    params = mt.MatchParams()
+    case = make_case(3, params, shift=0.0, rot_deg=0.0)
+    res = case.match(params)
+    assert res.accepted, res.reason
+    assert res.correction is not None
+    assert res.correction.translation < 0.5
+    assert abs(math.degrees(res.correction.dtheta)) < 0.5
+    assert res.score_after >= res.score_before
+
+
+def test_accepted_correction_improves_agreement_and_reports_fields() -> None:
+    params = mt.MatchParams()
+    case = make_case(5, params)
+    res = case.match(params)
+    assert res.accepted and res.reason == "ok"
+    assert res.score_after > res.score_before + 0.1
+    assert res.inliers >= params.min_inliers and res.n_matches >= res.inliers
+    assert res.n_features_ism > 0 and res.n_features_map > 0
+    assert res.elapsed_s > 0.0
+    assert res.matrix is not None and res.affine is not None and res.affine.shape == (2, 3)
+    # The correction maps the claimed placement (prior) onto the found one (matrix).
+    c = mt.ism_centre(case.ism.shape)[None]
+    moved = mt.apply(res.matrix, c) - mt.apply(res.prior, c)
+    assert res.correction is not None
+    np.testing.assert_allclose(moved[0], [res.correction.dx, res.correction.dy], atol=1e-9)
+
+
+def test_matching_is_deterministic() -> None:
+    params = mt.MatchParams()
+    case = make_case(7, params, laser=True)
+    a, b = case.match(params), case.match(params)
+    assert a.reason == b.reason and a.inliers == b.inliers
+    assert a.matrix is not None and b.matrix is not None
+    np.testing.assert_array_equal(a.matrix, b.matrix)
+
+
+def test_int_fixed_point_and_float_nats_give_the_same_match() -> None:
+    params = mt.MatchParams()
+    case = make_case(9, params)
+    a = case.match(params)
+    b = mt.match_ism(logodds.from_fixed(case.ism), logodds.from_fixed(case.window), params,
+                     mt.prior_matrix(case.claimed, case.window_geom))
+    assert a.matrix is not None and b.matrix is not None
+    np.testing.assert_allclose(a.matrix, b.matrix, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Refusals
+
+
+def test_featureless_isms_are_refused() -> None:
+    """Empty floor (or nothing known) has no structure: never 'corrected' at random."""
+    params = mt.MatchParams()
+    floor = logodds.to_fixed(np.full((ISM, ISM), -2.0))
+    nothing = np.zeros((ISM, ISM), np.int16)
+    rng = np.random.default_rng(0)
+    speckle = logodds.to_fixed(np.where(rng.random((ISM, ISM)) < 0.001, 2.0, -2.0))
+    for seed in range(10):
+        window = make_case(seed, params).window
+        empty_window = logodds.to_fixed(np.full(window.shape, -2.0))
+        for ism in (floor, nothing, speckle):
+            for win in (window, empty_window):
+                res = mt.match_ism(ism, win, params)
+                assert not res.accepted, (seed, res.reason, res.correction)
+
+
+def test_an_ism_from_elsewhere_is_refused() -> None:
+    """The window of the claimed pose shows another place: no transform may be accepted."""
+    params = mt.MatchParams()
+    reasons: Counter[mt.MatchReason] = Counter()
+    for seed in range(20):
+        plan = mt.synthetic_floorplan(PLAN, seed=seed)
+        plan_geom = GridGeometry(RES, PLAN, PLAN)
+        here, there = grid_at(140, 140, 0.3 * seed), grid_at(460, 440, 0.3 * seed)
+        ism = resample_logodds(plan, plan_geom, here, "nearest")
+        if seed % 2:
+            ism = laser_view(ism, np.random.default_rng(seed))
+        wg = mt.match_window(there, params)
+        win = resample_logodds(plan, plan_geom, wg, "biodds")
+        res = mt.match_ism(ism, win, params, mt.prior_matrix(there, wg))
+        reasons[res.reason] += 1
+        assert not res.accepted, (seed, res.correction, res.score_before, res.score_after)
+    assert mt.MatchReason.OK not in reasons
+
+
+def test_acceptance_rules() -> None:
+    p = mt.MatchParams(max_translation=5.0, max_rotation=math.radians(3), min_inliers=8)
+    ok = mt.Correction(3.0, -3.0, math.radians(2), 1.01)
+    assert mt.check_correction(ok, 0.0, 8, p) is None
+    assert mt.check_correction(ok, 0.0, 7, p) is mt.MatchReason.TOO_FEW_INLIERS
+    far = mt.Correction(4.0, 4.0, 0.0, 1.0)
+    assert mt.check_correction(far, 0.0, 8, p) is mt.MatchReason.CORRECTION_TOO_LARGE
+    turned = mt.Correction(0.0, 0.0, math.radians(-4), 1.0)
+    assert mt.check_correction(turned, 0.0, 8, p) is mt.MatchReason.CORRECTION_TOO_LARGE
+    scaled = mt.Correction(0.0, 0.0, 0.0, 1.2)
+    assert mt.check_correction(scaled, 0.0, 8, p) is mt.MatchReason.DEGENERATE
+    assert mt.check_correction(ok, 5.0, 8, p) is mt.MatchReason.DEGENERATE
+
+
+def test_a_shift_beyond_the_bounds_is_not_accepted() -> None:
+    """Claimed 14 cells off while only 4 are allowed: refused (not found or too large)."""
+    params = mt.MatchParams(max_translation=4.0)
+    case = make_case(2, params, shift=0.0, rot_deg=0.0)
+    off = Pose2D(14 * RES, 0.0, 0.0)
+    claimed = GridGeometry(RES, ISM, ISM, off.compose(case.truth.origin))
+    wg = mt.match_window(claimed, params)
+    plan = mt.synthetic_floorplan(PLAN, seed=2)
+    win = resample_logodds(plan, GridGeometry(RES, PLAN, PLAN), wg, "biodds")
+    res = mt.match_ism(case.ism, win, params, mt.prior_matrix(claimed, wg))
+    assert not res.accepted
+    loose = mt.match_ism(case.ism, win, mt.MatchParams(), mt.prior_matrix(claimed, wg))
+    assert loose.accepted  # the same pair is matched when 14 cells are allowed
+
+
+def test_worse_agreement_is_refused() -> None:
+    p = mt.MatchParams(min_overlap=10)
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(50, 50)).astype(np.float32) * 2
+    assert mt._verdict(0.8, 0.7, 2500, p) is mt.MatchReason.NO_IMPROVEMENT
+    assert mt._verdict(0.5, 0.7, 2500, p) is mt.MatchReason.OK
+    assert mt._verdict(0.1, 0.2, 2500, p) is mt.MatchReason.POOR_AGREEMENT
+    assert mt._verdict(0.1, 0.9, 5, p) is mt.MatchReason.TOO_LITTLE_OVERLAP
+    assert mt._verdict(math.nan, 0.9, 2500, p) is mt.MatchReason.OK
+    assert mt._verdict(0.5, math.nan, 2500, p) is mt.MatchReason.POOR_AGREEMENT
+    assert mt.agreement(a, a, p)[0] == pytest.approx(1.0)
+    assert mt.agreement(a, -a, p)[0] == pytest.approx(-1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Pieces
+
+
+def test_agreement_counts_only_cells_known_in_both() -> None:
+    p = mt.MatchParams(min_overlap=4)
+    a = np.array([[2.0, -2.0, 0.0, 2.0], [-2.0, 2.0, 0.0, -2.0]], np.float32)
+    b = np.array([[2.0, -2.0, 5.0, 0.0], [-2.0, 2.0, -5.0, 0.0]], np.float32)
+    score, n = mt.agreement(a, b, p)
+    assert n == 4 and score == pytest.approx(1.0)
+    const = np.full_like(a, -2.0)
+    assert math.isnan(mt.agreement(const, b, p)[0])  # nothing to judge on an empty floor
+    assert math.isnan(mt.agreement(a, b, replace(p, min_overlap=5))[0])
+
+
+def test_render_keeps_free_unknown_occupied_distinct() -> None:
+    p = mt.MatchParams(blur_sigma=0.0)
+    img = mt.render_u8(np.array([[-3.0, -0.1, 0.0, 0.1, 3.0]], np.float32), p)
+    assert img.dtype == np.uint8
+    assert list(img[0]) == [p.free_level, p.unknown_level, p.unknown_level, p.unknown_level,
+                            p.occupied_level]
+    assert len({p.free_level, p.unknown_level, p.occupied_level}) == 3
+
+
+def test_fit_similarity_recovers_a_known_transform() -> None:
+    rng = np.random.default_rng(0)
+    src = rng.uniform(-50, 50, size=(20, 2))
+    th, s, t = 0.3, 1.1, np.array([4.0, -7.0])
+    rot = s * np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    m = mt.fit_similarity(src, src @ rot.T + t)
+    np.testing.assert_allclose(m[:2, :2], rot, atol=1e-12)
+    np.testing.assert_allclose(m[:2, 2], t, atol=1e-9)
+
+
+def test_corrected_geometry_applies_the_matrix() -> None:
+    """Build a result by hand: the corrected geometry must be the truth exactly."""
+    params = mt.MatchParams()
+    truth = grid_at(300.0, 250.0, 0.4)
+    claimed = grid_at(307.0, 244.0, 0.4 + math.radians(6))
+    wg = mt.match_window(claimed, params)
+    matrix = mt.prior_matrix(truth, wg)  # where the ISM's cells truly are in the window
+    res = mt.MatchResult(True, mt.MatchReason.OK, None, matrix, mt.prior_matrix(claimed, wg),
+                         0, 0, 0, 0, 0.0, 0.0, 0.0)
+    geom = mt.corrected_geometry(claimed, wg, res)
+    assert geom.resolution == pytest.approx(RES)
+    np.testing.assert_allclose(geom.cell_to_world(), truth.cell_to_world(), atol=1e-9)
+    # Identity correction: the claimed geometry comes back.
+    same = replace(res, matrix=res.prior)
+    np.testing.assert_allclose(mt.corrected_geometry(claimed, wg, same).cell_to_world(),
+                               claimed.cell_to_world(), atol=1e-9)
+    # A scale is dropped by default (about the centre) and kept on request.
+    scaled = np.diag([1.02, 1.02, 1.0]) @ matrix
+    res_s = replace(res, matrix=scaled)
+    assert mt.corrected_geometry(claimed, wg, res_s).resolution == pytest.approx(RES)
+    kept = mt.corrected_geometry(claimed, wg, res_s, keep_scale=True)
+    assert kept.resolution == pytest.approx(1.02 * RES)
+    with pytest.raises(ValueError, match="no transform"):
+        mt.corrected_geometry(claimed, wg, replace(res, matrix=None))
+
+
+def test_default_prior_is_the_match_window_prior() -> None:
+    params = mt.MatchParams()
+    claimed = grid_at(300.0, 250.0, 1.0, n=100)
+    wg = mt.match_window(claimed, params)
+    np.testing.assert_allclose(mt.prior_matrix(claimed, wg),
+                               mt.default_prior(claimed.shape, wg.shape), atol=1e-9)
+
+
+def test_params_are_validated() -> None:
+    with pytest.raises(ValueError):
+        mt.MatchParams(model="affine")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        mt.MatchParams(min_inliers=2)
+    with pytest.raises(ValueError):
+        mt.MatchParams(unknown_level=0)
+    with pytest.raises(ValueError):
+        mt.match_ism(np.zeros(5), np.zeros((5, 5)))
+
+
+def test_floorplan_is_seeded_and_structured() -> None:
+    a, b = mt.synthetic_floorplan(256, seed=4), mt.synthetic_floorplan(256, seed=4)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, mt.synthetic_floorplan(256, seed=5))
+    occupied = (a > 0).mean()
+    assert 0.02 < occupied < 0.3 and (a < 0).mean() > 0.5 and (a == 0).any()
+
+
+def test_benchmark_match_returns_timings() -> None:
+    out = mt.benchmark_match(size=128, repeats=2, seed=1)
+    assert out["accepted"] == 1.0 and out["repeats"] == 2.0
+    assert 0.0 < out["min_s"] <= out["mean_s"]
