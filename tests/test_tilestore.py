@@ -400,3 +400,19 @@ def test_write_errors_are_reported_and_the_thread_survives(
         assert saved == ["b"] and writer.stats.errors == 1
         assert "No space" in (writer.stats.last_error or "")
         assert writer.close(5.0)
+
+
+def test_loads_during_rewrites_never_see_a_torn_file(tmp_path: Path) -> None:
+    """Readers racing the writer's renames get the old or the new tile, never a reject."""
+    with open_store(tmp_path) as store:
+        writer = TileWriter(store)
+        versions = [stack(70 + k) for k in range(3)]
+        writer.submit(0, 0, LAYERS, versions[0].copy(), 0.0)
+        assert writer.flush(5.0)
+        for k in range(150):
+            writer.submit(0, 0, LAYERS, versions[k % 3].copy(), float(k))
+            tile = store.load(0, 0)
+            assert tile is not None
+            assert any(np.array_equal(tile.data, v) for v in versions)
+        assert writer.close(10.0)
+        assert store.problems == [] and not (tmp_path / QUARANTINE_DIR).exists()
