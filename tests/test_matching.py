@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -18,7 +19,9 @@ import pytest
 
 from sogm_service import logodds
 from sogm_service import matching as mt
+from sogm_service.carmen import LaserScan, read_carmen
 from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.laser import laser_ism
 from sogm_service.resample import resample_logodds
 
 RES = 0.05
@@ -392,3 +395,81 @@ def test_benchmark_match_returns_timings() -> None:
     out = mt.benchmark_match(size=128, repeats=2, seed=1)
     assert out["accepted"] == 1.0 and out["repeats"] == 2.0
     assert 0.0 < out["min_s"] <= out["mean_s"]
+
+
+# ---------------------------------------------------------------------------------------------
+# The real Intel Research Lab log
+
+
+INTEL = Path("/work/shared/data/carmen/intel-corrected.log.gz")
+INTEL_RES = 0.05
+INTEL_RANGE = 8.0  # usable laser range (m): the ISM stays a few hundred cells wide
+
+
+def _fuse_into(state: npt.NDArray[np.int16], map_geom: GridGeometry, geom: GridGeometry,
+               l: npt.NDArray[np.int16]) -> None:
+    """Bayes-update only the map block under the ISM (Eq. 1), not the whole map."""
+    xmin, ymin, xmax, ymax = geom.bounds()
+    (u0, v0), (u1, v1) = map_geom.world_to_index(np.array([[xmin, ymin], [xmax, ymax]]))
+    u0, v0 = max(int(u0), 0), max(int(v0), 0)
+    u1, v1 = min(int(u1) + 2, map_geom.width), min(int(v1) + 2, map_geom.height)
+    block = map_geom.subgrid(u0, v0, u1 - u0, v1 - v0)
+    inc = resample_logodds(l, geom, block, "biodds")
+    view = state[v0:v1, u0:u1]
+    logodds.bayes_update(view, inc, logodds.clamp_limits())
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")
+def test_intel_perturbed_isms_end_closer_to_the_corrected_poses() -> None:
+    """Map the log's corrected poses incrementally; every 10th scan (after a warm-up) is first
+    sent with a perturbed pose (up to 0.3 m = 6 cells, 5 degrees) and matched against the map
+    built so far.  Refused matches keep the perturbed pose (what the server fuses)."""
+    scans = list(read_carmen(INTEL, limit=700))
+    xy = np.array([[s.pose.x, s.pose.y] for s in scans])
+    lo = np.floor(xy.min(axis=0) - INTEL_RANGE - 2)
+    size = np.ceil((xy.max(axis=0) + INTEL_RANGE + 2 - lo) / INTEL_RES).astype(int)
+    map_geom = GridGeometry(INTEL_RES, int(size[0]), int(size[1]),
+                            Pose2D(float(lo[0]), float(lo[1]), 0.0))
+    state = np.zeros(map_geom.shape, np.int16)
+    params = mt.MatchParams()
+    rng = np.random.default_rng(0)
+
+    def ism(scan: LaserScan, pose: Pose2D) -> tuple[GridGeometry, npt.NDArray[np.int16]]:
+        g, p = laser_ism(scan.ranges, scan.angles, pose, INTEL_RES,
+                         min(INTEL_RANGE, scan.max_range), device_max_range=scan.max_range)
+        return g, logodds.prob_to_fixed(p)
+
+    before, after = [], []
+    reasons: Counter[mt.MatchReason] = Counter()
+    for i, scan in enumerate(scans):
+        if i >= 150 and i % 10 == 0:
+            d = rng.uniform(-1.0, 1.0, 3) * np.array([0.3, 0.3, math.radians(5.0)])
+            claimed = Pose2D(scan.pose.x + d[0], scan.pose.y + d[1], scan.pose.yaw + d[2])
+            g, l = ism(scan, claimed)
+            wg = mt.match_window(g, params)
+            res = mt.match_ism(l, resample_logodds(state, map_geom, wg, "biodds"), params,
+                               mt.prior_matrix(g, wg))
+            reasons[res.reason] += 1
+            est = claimed
+            if res.accepted:
+                # The sensor sits at a fixed place in its ISM grid: carry it along.
+                to_sensor = g.origin.inverse().compose(claimed)
+                est = mt.corrected_geometry(g, wg, res).origin.compose(to_sensor)
+            before.append(pose_error(claimed, scan.pose))
+            after.append(pose_error(est, scan.pose))
+        _fuse_into(state, map_geom, *ism(scan, scan.pose))
+    b, a = np.array(before), np.array(after)
+    accepted = np.any(a != b, axis=1)
+    assert accepted.mean() >= 0.4, reasons
+    # Position (m) and heading (deg): the mean error at least a third smaller overall ...
+    assert a[:, 0].mean() < 0.67 * b[:, 0].mean()
+    assert a[:, 1].mean() < 0.67 * b[:, 1].mean()
+    # ... and the accepted corrections land within a cell or two and a degree of the truth.
+    assert np.median(a[accepted, 0]) < 2 * INTEL_RES
+    assert np.median(a[accepted, 1]) < 1.0
+
+
+def pose_error(a: Pose2D, b: Pose2D) -> tuple[float, float]:
+    """(position error in m, heading error in degrees)."""
+    return math.hypot(a.x - b.x, a.y - b.y), abs(math.degrees(math.remainder(a.yaw - b.yaw,
+                                                                             2 * math.pi)))
