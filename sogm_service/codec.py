@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from sogm_service.messages import SCHEMA_MODELS
+from sogm_service.messages import REJECT_CODES, SCHEMA_MODELS
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -30,6 +30,8 @@ _PYDANTIC_CODES = {
     "less_than": "invalid_value",
     "less_than_equal": "invalid_value",
     "extra_forbidden": "invalid_value",
+    "int_from_float": "wrong_type",  # 1.5 where an integer belongs
+    "string_unicode": "wrong_type",  # bytes that are not UTF-8 where a string belongs
 }
 
 MAX_PAYLOAD_BYTES = 256 * 1024 * 1024
@@ -83,8 +85,10 @@ def validation_error_to_decode_error(exc: ValidationError) -> DecodeError:
         code = _PYDANTIC_CODES[kind]
     elif kind.endswith("_type") or kind.endswith("_parsing") or kind == "model_type":
         code = "wrong_type"
-    else:
+    elif kind in REJECT_CODES:
         code = kind  # our own PydanticCustomError codes
+    else:
+        code = "invalid_value"  # any other pydantic check: never an undocumented code
     where = f"{loc}: " if loc else ""
     return DecodeError(code, f"{where}{err['msg']}", parameter=loc or None)
 
