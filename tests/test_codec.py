@@ -63,7 +63,7 @@ def valid_instances() -> dict[type[BaseModel], BaseModel]:
     arr = WireArray.from_array(np.arange(24, dtype=np.int16).reshape(2, 3, 4))
     pose = PoseModel(x=1.0, y=2.0, yaw=-0.5)
     fix = GeodeticFix(latitude=52.03, longitude=8.49, altitude=110.0)
-    return {
+    instances: dict[type[BaseModel], BaseModel] = {
         IsmMessage: IsmMessage(**ism_fields()),
         PoseMessage: PoseMessage(robot="r1", frame="map", stamp=3.0, x=1.0, y=-1.0, yaw=0.1,
                                  fix=fix),
@@ -100,6 +100,12 @@ def valid_instances() -> dict[type[BaseModel], BaseModel]:
         ErrorReply: ErrorReply(code="unknown_layer", message="no such layer",
                                parameter="layers"),
     }
+    robot_tiles = getattr(messages, "RobotTilesReply", None)  # newer than this file's start
+    if robot_tiles is not None:
+        event = instances[TileEvent]
+        instances[robot_tiles] = robot_tiles(map="m", robots=[event, event.model_copy(
+            update={"robot": "r2", "datum": None})])
+    return instances
 
 
 def test_every_schema_model_has_a_valid_instance_here() -> None:
