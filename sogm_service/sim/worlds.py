@@ -109,10 +109,6 @@ class _Canvas:
         self.paint(mask, label, height)
         return mask
 
-    def disc(self, cx: float, cy: float, r: float, label: int, height: float) -> None:
-        ang = np.linspace(0, 2 * math.pi, 24, endpoint=False)
-        pts = np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], axis=1)
-        self.paint(self.polygon_mask(pts), label, height)
 
 
 def rect_corners(cx: float, cy: float, w: float, h: float, yaw: float) -> npt.NDArray[np.float64]:
@@ -128,7 +124,7 @@ _Sampler = Callable[[np.random.Generator], _Placement]
 
 
 def _place_without_overlap(rng: np.random.Generator, canvas: _Canvas, allowed: npt.NDArray,
-                           sample: _Sampler, tries: int = 60) -> bool:
+                           sample: _Sampler, tries: int = 400) -> bool:
     """Try random placements until one's footprint lies wholly inside ``allowed``; paint it."""
     for _ in range(tries):
         cx, cy, w, h, yaw, label, height, margin = sample(rng)
@@ -144,9 +140,10 @@ def tabletop_world(seed: int, *, size_m: float = 3.0, resolution: float = 0.01) 
 
     ``size_m`` square at ``resolution``: a walled room (random extent, wall thickness 5 cm,
     2 m high, class ``obstacle``) with unknown space outside, floor inside, 2-3 tables
-    (0.4-1.0 m, random yaw, 0.75 m high) and 3-6 small obstacles (boxes and cylinders of
-    6-25 cm, 0.15-0.5 m high).  Objects keep 0.3 m from each other and from the walls so a small
-    robot can drive around all of them.
+    (0.5-0.9 x 0.4-0.7 m, random yaw, 0.75 m high) and 3-6 small box obstacles (6-35 cm,
+    0.15-0.5 m high).  Objects keep 0.25 m from each other and from the walls so a small robot
+    can drive around all of them; an object that finds no such place after many random tries
+    is left out, so a crowded draw may hold fewer.
     """
     rng = np.random.default_rng([seed, 0x7AB1E])
     n = round(size_m / resolution)
@@ -164,15 +161,15 @@ def tabletop_world(seed: int, *, size_m: float = 3.0, resolution: float = 0.01) 
         return inner & (c.labels == floor)
 
     def table_sample(r: np.random.Generator) -> _Placement:
-        return (float(r.uniform(x0, x1)), float(r.uniform(y0, y1)), float(r.uniform(0.5, 1.0)),
-                float(r.uniform(0.4, 0.8)), float(r.uniform(-math.pi, math.pi)), table, 0.75,
-                0.3)
+        return (float(r.uniform(x0, x1)), float(r.uniform(y0, y1)), float(r.uniform(0.5, 0.9)),
+                float(r.uniform(0.4, 0.7)), float(r.uniform(-math.pi, math.pi)), table, 0.75,
+                0.25)
 
     def obstacle_sample(r: np.random.Generator) -> _Placement:
         s = float(r.uniform(0.06, 0.25))
         return (float(r.uniform(x0, x1)), float(r.uniform(y0, y1)), s,
                 s * float(r.uniform(0.6, 1.4)), float(r.uniform(-math.pi, math.pi)), obstacle,
-                float(r.uniform(0.15, 0.5)), 0.3)
+                float(r.uniform(0.15, 0.5)), 0.25)
 
     for _ in range(int(rng.integers(2, 4))):
         _place_without_overlap(rng, c, free_floor(), table_sample)
