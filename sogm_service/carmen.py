@@ -27,12 +27,17 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.geometry import Pose2D
+from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.laser import laser_ism
 
 log = logging.getLogger(__name__)
 
 SICK_MAX_RANGE = 80.0
 """Maximum range CARMEN assumes for FLASER lines (m)."""
+
+DEFAULT_USABLE_RANGE = 20.0
+"""Ranges beyond this are trusted only as free space up to it (m): far SICK returns in an
+office are sparse and their angular error spans several cells."""
 
 
 @dataclass(frozen=True)
@@ -121,3 +126,17 @@ def read_carmen(path: str | Path, *, limit: int | None = None,
         yield scan
         if limit is not None and st.scans >= limit:
             return
+
+
+def scan_ism(scan: LaserScan, resolution: float = 0.05,
+             usable_range: float = DEFAULT_USABLE_RANGE, *, p_free: float = 0.3,
+             p_occ: float = 0.8,
+             hit_width_cells: int = 1) -> tuple[GridGeometry, npt.NDArray[np.float32]]:
+    """The ``obstacle`` ISM of one recorded scan (:func:`sogm_service.laser.laser_ism`).
+
+    The device's no-return readings (``>= scan.max_range``) are dropped; readings beyond
+    ``usable_range`` are free up to it.  Sensor-aligned grid at ``scan.pose``.
+    """
+    return laser_ism(scan.ranges, scan.angles, scan.pose, resolution,
+                     min(usable_range, scan.max_range), p_free=p_free, p_occ=p_occ,
+                     hit_width_cells=hit_width_cells, device_max_range=scan.max_range)

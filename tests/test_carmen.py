@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 
 from sogm_service.carmen import CarmenStats, carmen_angles, parse_flaser, read_carmen
+from sogm_service.geometry import window_geometry
 from sogm_service.laser import scan_endpoints_world
+from sogm_service.sim.fleet import replay_scans
 from sogm_service.sim.offline import map_scans
+from tests.conftest import ServerProcess, wait_processed
 
 INTEL = Path("/work/shared/data/carmen/intel-corrected.log.gz")
 needs_intel = pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")
@@ -99,3 +102,29 @@ def test_intel_slice_map_occupied_on_endpoints_and_corridors_free() -> None:
                       for a, b in itertools.pairwise(poses)])
     puv = geom.world_to_index(path)
     assert (p[puv[:, 1], puv[:, 0]] < 0.3).mean() > 0.99
+
+
+@needs_intel
+@pytest.mark.integration
+def test_replay_publishes_the_log_to_a_real_server(server: ServerProcess) -> None:
+    scans = list(read_carmen(INTEL, limit=60))
+    stats = replay_scans(scans, server.endpoint, robot="intel", speed=0.0)
+    assert stats.isms == 60 and stats.poses == 60
+    with server.client() as client:
+        counters = wait_processed(client, stats.isms)
+        assert counters.get("isms_fused", 0) == 60, counters
+        assert client.info().layers == ["obstacle"]
+        win = client.submap(x=0.0, y=0.0, width=12.0, height=12.0, layers=["obstacle"])
+    p = win.probabilities()[0]
+    geom = window_geometry(0.0, 0.0, 0.0, 12.0, 12.0, 0.05)
+    ends = np.vstack([scan_endpoints_world(s.ranges, s.angles, s.pose, 20.0) for s in scans])
+    uv = geom.world_to_index(ends)
+    keep = (uv[:, 0] >= 0) & (uv[:, 0] < geom.width) & (uv[:, 1] >= 0) & (uv[:, 1] < geom.height)
+    end_cells = np.zeros(geom.shape, np.uint8)
+    end_cells[uv[keep, 1], uv[keep, 0]] = 1
+    near_end = cv2.dilate(end_cells, np.ones((3, 3), np.uint8)).astype(bool)
+    occupied = p > 0.65
+    assert occupied.sum() > 300
+    assert (occupied & near_end).sum() / occupied.sum() > 0.99
+    start = geom.world_to_index(np.array([scans[0].pose.x, scans[0].pose.y]))
+    assert p[start[1], start[0]] < 0.3

@@ -1,4 +1,5 @@
-"""A simulated fleet on Zenoh: every robot its own session, publishing ISMs and poses.
+"""A simulated fleet (or a replayed log) on Zenoh: every robot its own session, publishing
+ISMs and poses.
 
 Each robot of :func:`sogm_service.sim.robots.simulate` connects its own Zenoh session (client
 mode, multicast scouting off, to the map server's endpoint, e.g. ``tcp/127.0.0.1:7447``) through
@@ -14,6 +15,8 @@ exact "unknown" (``prob_u8`` cannot say 0.5 exactly).  Puts use congestion contr
 (MapClient's publishers), so large ISMs are never dropped.  Every session is closed on exit,
 including on errors and on ``stop``.
 
+:func:`replay_scans` publishes a recorded CARMEN log the same way, as one robot.
+
 This is the only module of the simulator that talks to Zenoh.
 """
 
@@ -22,12 +25,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from sogm_service.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.client import MapClient
+from sogm_service.geometry import Pose2D
 from sogm_service.laser import encode_occupancy_i8, encode_prob_u8
 from sogm_service.sim.robots import SimStep, simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm
@@ -78,18 +83,23 @@ class RobotLink:
 
     def publish(self, step: SimStep, stamp: float, stats: FleetStats) -> None:
         """The step's reported pose, then its ISMs."""
-        p = step.pose
-        self.client.publish_pose(self.name, p.x, p.y, p.yaw, stamp=stamp, frame=self.frame,
-                                 key_prefix=self.pose_prefix)
-        stats.poses += 1
+        self.publish_pose(step.pose, stamp, stats)
         for ism in step.isms:
-            msg = self.client.publish_ism(
-                ism_key(self.name, ism, self.ism_prefix), encode_cells(ism.prob, self.encoding),
-                resolution=ism.geometry.resolution, origin=ism.geometry.origin,
-                encoding=self.encoding, layer=ism.layer, frame=self.frame, stamp=stamp,
-                robot=self.name)
-            stats.isms += 1
-            stats.ism_bytes += len(msg.data)
+            self.publish_ism(ism, stamp, stats)
+
+    def publish_pose(self, pose: Pose2D, stamp: float, stats: FleetStats) -> None:
+        self.client.publish_pose(self.name, pose.x, pose.y, pose.yaw, stamp=stamp,
+                                 frame=self.frame, key_prefix=self.pose_prefix)
+        stats.poses += 1
+
+    def publish_ism(self, ism: SensorIsm, stamp: float, stats: FleetStats) -> None:
+        msg = self.client.publish_ism(
+            ism_key(self.name, ism, self.ism_prefix), encode_cells(ism.prob, self.encoding),
+            resolution=ism.geometry.resolution, origin=ism.geometry.origin,
+            encoding=self.encoding, layer=ism.layer, frame=self.frame, stamp=stamp,
+            robot=self.name)
+        stats.isms += 1
+        stats.ism_bytes += len(msg.data)
 
     def close(self) -> None:
         self.client.close()
@@ -129,6 +139,40 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
                 link.close()
             except Exception:  # closing the rest matters more than one failure
                 log.exception("closing %s's session failed", link.name)
+    stats.wall_s = time.monotonic() - t_wall0
+    return stats
+
+
+def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "carmen",
+                 sensor: str = "laser", layer: str = "obstacle", resolution: float = 0.05,
+                 usable_range: float = DEFAULT_USABLE_RANGE, speed: float = 1.0,
+                 encoding: str = "occupancy_i8", ism_prefix: str = "ism",
+                 pose_prefix: str = "pose", stop: threading.Event | None = None) -> FleetStats:
+    """Publish recorded scans (e.g. :func:`sogm_service.carmen.read_carmen`) as one robot.
+
+    Per scan: the laser pose on ``pose/<robot>`` and its ISM
+    (:func:`sogm_service.carmen.scan_ism`) on ``ism/<robot>/<sensor>/<layer>``, stamped with
+    the log's own stamps.  ``speed`` scales the log's pace (2.0 = twice as fast; 0 = as fast as
+    possible).  The backbone of ``sogm-service replay carmen FILE``.
+    """
+    stats = FleetStats()
+    t_wall0 = time.monotonic()
+    link = RobotLink(robot, endpoint, ism_prefix=ism_prefix, pose_prefix=pose_prefix,
+                     encoding=encoding)
+    try:
+        stamp0: float | None = None
+        for scan in scans:
+            if stop is not None and stop.is_set():
+                break
+            stamp0 = scan.stamp if stamp0 is None else stamp0
+            if speed > 0:
+                _sleep_until(t_wall0 + (scan.stamp - stamp0) / speed, stop)
+            geom, p = scan_ism(scan, resolution, usable_range)
+            link.publish_pose(scan.pose, scan.stamp, stats)
+            link.publish_ism(SensorIsm(layer, geom, p, sensor), scan.stamp, stats)
+            stats.steps += 1
+    finally:
+        link.close()
     stats.wall_s = time.monotonic() - t_wall0
     return stats
 

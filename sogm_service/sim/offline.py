@@ -16,9 +16,8 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service import logodds
-from sogm_service.carmen import LaserScan
+from sogm_service.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.laser import laser_ism
 from sogm_service.resample import Interp, resample_logodds
 from sogm_service.sim.robots import simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
@@ -99,7 +98,8 @@ def map_world(world: World, seed: int, *, robots: int = 1, duration_s: float | N
     return layers, sogm.probabilities()
 
 
-def map_scans(scans: Iterable[LaserScan], resolution: float = 0.05, usable_range: float = 20.0,
+def map_scans(scans: Iterable[LaserScan], resolution: float = 0.05,
+              usable_range: float = DEFAULT_USABLE_RANGE,
               *, layer: str = "obstacle", margin: float = 1.0, interp: Interp = "biodds",
               eps0: float = logodds.DEFAULT_EPS0, p_free: float = 0.3, p_occ: float = 0.8,
               hit_width_cells: int = 1) -> tuple[GridGeometry, npt.NDArray[np.float32]]:
@@ -113,10 +113,8 @@ def map_scans(scans: Iterable[LaserScan], resolution: float = 0.05, usable_range
     """
     isms = []
     for scan in scans:
-        max_r = min(usable_range, scan.max_range)
-        geom, p = laser_ism(scan.ranges, scan.angles, scan.pose, resolution, max_r,
-                            device_max_range=scan.max_range, p_free=p_free, p_occ=p_occ,
-                            hit_width_cells=hit_width_cells)
+        geom, p = scan_ism(scan, resolution, usable_range, p_free=p_free, p_occ=p_occ,
+                           hit_width_cells=hit_width_cells)
         isms.append(SensorIsm(layer, geom, p, "laser"))
     if not isms:
         raise ValueError("no scans to map")
