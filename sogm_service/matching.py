@@ -7,23 +7,38 @@ the distance of pairwise feature candidates which again leads to a homography" (
 
 Pipeline of :func:`match_ism` (all in cell units, the ISM already resampled to map resolution):
 
-1. *Render* both grids to 8-bit images (:func:`render_u8`): a monotone, piecewise-linear map of
-   clipped log-odds with three distinct anchors - free dark, unknown mid-grey, occupied white -
-   so that walls (occupied against free) give the strongest gradients and unknown never looks
-   like either.
+1. *Render* both grids to 8-bit images (:func:`render_u8`): ternary by ``known_threshold`` -
+   free black, unknown dark grey, occupied white - so occupied, free and unknown stay distinct,
+   an ISM's mild log-odds and the map's saturated ones look alike, and the edge of a sensor's
+   field of view (free against unknown, absent from the map) is weak while the walls both
+   share are strong.  A light Gaussian blur steadies FAST/BRIEF on these binary images.
 2. *Detect* ORB keypoints in both (OpenCV), the images padded by replication so that keypoints
-   near the border survive without the padding inventing edges.
+   near the border survive without the padding inventing edges.  **Upright, one level**: the
+   window is resampled in the claimed ISM frame at the ISM's resolution, so the residual
+   rotation is small (<= ``max_rotation``) and the scale is 1; ORB's intensity-centroid angle
+   differs between a partial laser view and the map (measured: the true correspondence was the
+   best gated candidate for 11% of keypoints with ORB angles, 45% upright and single-level).
 3. *Match* Hamming descriptors, **guided by the claimed pose**: a pair is only a candidate when
    the window keypoint lies where the ISM keypoint could land under the largest correction that
-   would be accepted anyway (translation + rotation bounds).  This removes most of the
-   repetitive-structure outliers of grid maps before the ratio test / cross check.
-4. *Estimate* the transform robustly with RANSAC: ``cv2.estimateAffinePartial2D`` (rotation,
-   translation, uniform scale - the physically right model for two 2-D grids of the same
-   resolution; default) or the paper's full homography (``cv2.findHomography``).
-5. *Accept* only if enough inliers support it, the correction is within bounds, the scale is ~1
-   and the agreement of the corrected ISM with the map (:func:`agreement`: Pearson correlation
-   of clipped log-odds over cells known in both) is not worse than before and not poor.  Every
-   failure carries a :class:`MatchReason`.
+   would be accepted anyway (``gate_mask``).  This removes most of the repetitive-structure
+   outliers of grid maps.  Then mutual best matches (cross check); Lowe's ratio test is
+   available (``ratio < 1``) but off by default - within the gate, similar-looking wall corners
+   are legitimate neighbours, and the test threw away more true matches than false ones.
+4. *Estimate* the transform robustly with RANSAC (``cv2.setRNGSeed`` first, so it is
+   deterministic): ``cv2.estimateAffinePartial2D`` (rotation, translation, uniform scale - the
+   physically right model for two 2-D grids of the same resolution; default) or the paper's
+   full homography (``cv2.findHomography``, ``model="homography"``).
+5. *Refine* (partial-affine model only): ORB keypoints sit on the pixel lattice and a partial
+   view yields few inliers, which leaves the estimate a cell or two off; ECC
+   (``cv2.findTransformECC``, Euclidean, coarse to fine, masked by the ISM's known cells)
+   aligns the rendered images to sub-cell precision.  The refined model is kept only if it
+   stays near the RANSAC one and agrees better with the map.
+6. *Accept* only if enough inliers support it, the correction is within bounds, the scale is ~1
+   (and a homography is nearly a similarity) and the agreement of the corrected ISM with the
+   map (:func:`agreement`: Pearson correlation of clipped log-odds over cells known in both) is
+   at least ``min_score`` and not worse than under the claimed pose.  Every failure carries a
+   :class:`MatchReason`; a featureless ISM (empty floor) fails with ``too_few_features`` or at
+   the quality check, never with a random correction.
 
 Conventions.  The ISM and window arrays are indexed ``[v, u]`` like every grid here
 (:mod:`sogm_service.geometry`); continuous cell coordinates put cell centres on integers.
@@ -87,7 +102,7 @@ class MatchParams:
     free_level: int = 0
     unknown_level: int = 40
     occupied_level: int = 255
-    blur_sigma: float = 1.0  # ORB is noisy on binary images; a light blur steadies orientation
+    blur_sigma: float = 1.0  # ORB is noisy on binary images; a light blur steadies it
     # ORB (step 2)
     n_features: int = 800
     scale_factor: float = 1.3
@@ -98,7 +113,6 @@ class MatchParams:
     # Matching (step 3)
     ratio: float = 1.0  # Lowe's ratio test among gated candidates; 1.0 (default) disables it
     cross_check: bool = True  # keep only mutual best matches
-    candidates: int = 1  # > 1: keep this many best gated candidates, no ratio/cross check
     gate_slack: float = 4.0  # extra cells on top of the correction bounds
     # RANSAC (step 4)
     ransac_threshold: float = 2.0
@@ -108,7 +122,8 @@ class MatchParams:
     # ECC refinement (partial-affine model only)
     refine: bool = True
     refine_iters: int = 50
-    refine_kernels: tuple[int, ...] = (15, 5)  # Gaussian kernel per stage, coarse to fine
+    # (pyramid level, Gaussian kernel) per ECC stage, coarse to fine
+    refine_stages: tuple[tuple[int, int], ...] = ((1, 5), (0, 5))
     refine_max_shift: float = 6.0  # cells ECC may move the ISM centre away from RANSAC
     # Acceptance (step 5)
     min_features: int = 20
@@ -124,6 +139,8 @@ class MatchParams:
     def __post_init__(self) -> None:
         if self.model not in ("partial_affine", "homography"):
             raise ValueError(f"model must be 'partial_affine' or 'homography', got {self.model!r}")
+        if any(k < 1 or k % 2 == 0 or lvl < 0 for lvl, k in self.refine_stages):
+            raise ValueError("refine_stages need levels >= 0 and odd Gaussian kernels")
         if not (0 < self.ratio <= 1.0):
             raise ValueError(f"ratio must lie in (0, 1], got {self.ratio}")
         if self.min_inliers < 4 or self.min_features < 4:
@@ -211,7 +228,7 @@ def render_u8(l_nats: npt.NDArray[np.float32], params: MatchParams) -> Image:
     img = np.full(l_nats.shape, params.unknown_level, np.uint8)
     img[l_nats >= t] = params.occupied_level
     img[l_nats <= -t] = params.free_level
-    if params.blur_sigma > 0:
+    if params.blur_sigma > 0 and img.size:
         return np.asarray(cv2.GaussianBlur(img, (0, 0), params.blur_sigma), dtype=np.uint8)
     return img
 
@@ -226,18 +243,22 @@ def agreement(
     constant there (nothing to judge - e.g. an empty floor).
     """
     s = np.float32(params.saturation)
-    both = (np.abs(a_nats) >= params.known_threshold) & (np.abs(b_nats) >= params.known_threshold)
+    t = params.known_threshold
+    both = (np.abs(a_nats) >= t) & (np.abs(b_nats) >= t)
     n = int(np.count_nonzero(both))
     if n < params.min_overlap:
         return math.nan, n
-    x = np.clip(a_nats[both], -s, s).astype(np.float64)
-    y = np.clip(b_nats[both], -s, s).astype(np.float64)
-    x -= x.mean()
-    y -= y.mean()
-    den = math.sqrt(float(x @ x) * float(y @ y))
-    if den <= 1e-12:
+    # Masked dense arithmetic (no fancy indexing) and float32 BLAS dots: this runs three
+    # times per match on the whole window.
+    x = np.where(both, np.clip(a_nats, -s, s), np.float32(0.0)).ravel()
+    y = np.where(both, np.clip(b_nats, -s, s), np.float32(0.0)).ravel()
+    m = both.ravel().astype(np.float32)
+    x -= np.float32(float(x.sum(dtype=np.float64)) / n) * m
+    y -= np.float32(float(y.sum(dtype=np.float64)) / n) * m
+    den = math.sqrt(float(np.dot(x, x)) * float(np.dot(y, y)))
+    if den <= 1e-9 * n:
         return math.nan, n
-    return float(x @ y) / den, n
+    return float(np.dot(x, y)) / den, n
 
 
 def warp_into(
@@ -273,6 +294,8 @@ class _Features:
 
 def detect(img: Image, params: MatchParams) -> _Features:
     """ORB keypoints and descriptors of a rendered grid (III-C.2: "ORB feature extraction")."""
+    if img.size == 0:
+        return _Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8))
     pad = params.patch_size
     padded = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     orb = cv2.ORB.create(
@@ -318,7 +341,9 @@ def gate_mask(
     r = np.hypot(*(ism.points.astype(np.float64) - centre).T)
     reach = (params.max_translation + params.gate_slack
              + r * (2.0 * math.sin(0.5 * params.max_rotation) + params.max_scale_change))
-    d2 = ((q[:, None, :] - win.points[None, :, :].astype(np.float64)) ** 2).sum(axis=-1)
+    w = win.points.astype(np.float64)
+    # |q - w|^2 by expansion: no (n, m, 2) temporary.
+    d2 = (q * q).sum(axis=1)[:, None] + (w * w).sum(axis=1)[None, :] - 2.0 * (q @ w.T)
     return (d2 <= (reach ** 2)[:, None]).astype(np.uint8)
 
 
@@ -327,13 +352,6 @@ def match_pairs(
 ) -> tuple[Points, Points]:
     """Hamming matching among gated candidates: ratio test, then optional cross check."""
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-    if params.candidates > 1:
-        # Weak descriptors (a partial view against a map): keep the k best gated candidates
-        # and let RANSAC find the consistent ones.
-        knn = bf.knnMatch(ism.descriptors, win.descriptors, k=params.candidates, mask=mask)
-        pairs = np.array([(m.queryIdx, m.trainIdx) for c in knn for m in c],
-                         dtype=np.int64).reshape(-1, 2)
-        return ism.points[pairs[:, 0]], win.points[pairs[:, 1]]
     knn = bf.knnMatch(ism.descriptors, win.descriptors, k=2, mask=mask)
     fwd: dict[int, int] = {}
     for cand in knn:
@@ -386,20 +404,58 @@ def refine_ecc(
     known mask can be passed as ECC's input mask: the ISM's unknown cells never count.
     ``None`` when ECC fails to converge.
     """
-    w = np.asarray(np.linalg.inv(_rigid_about_centre(matrix, ism_img.shape)), np.float32)[:2]
-    tmpl = win_img.astype(np.float32)
-    inp = ism_img.astype(np.float32)
-    mask = ism_known.astype(np.uint8)
+    # ECC works on the window block under the ISM's known cells only (the rest cannot count).
+    x0, y0, tmpl = _ecc_template(win_img, ism_known, matrix, params)
+    crop = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+    w = np.linalg.inv(_rigid_about_centre(matrix, ism_img.shape)) @ crop
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.refine_iters, 1e-4)
     try:
-        for ksize in params.refine_kernels:
-            _, found = cv2.findTransformECC(tmpl, inp, w, cv2.MOTION_EUCLIDEAN, crit, mask,
-                                            ksize)
-            w = np.asarray(found, dtype=np.float32)
+        for level, ksize in params.refine_stages:
+            w = _ecc_stage(tmpl, ism_img, ism_known, w, level, ksize, crit)
     except cv2.error:
         return None
-    full = np.vstack([np.asarray(w, dtype=np.float64), [0.0, 0.0, 1.0]])
-    return np.asarray(np.linalg.inv(full), dtype=np.float64)
+    return np.asarray(np.linalg.inv(w @ np.linalg.inv(crop)), dtype=np.float64)
+
+
+def _ecc_template(
+    win_img: Image, ism_known: npt.NDArray[np.bool_], matrix: Matrix3, params: MatchParams
+) -> tuple[int, int, Image]:
+    """The window block around the ISM's known cells placed by ``matrix``, and its corner."""
+    h, w = win_img.shape
+    vs, us = np.nonzero(ism_known)
+    if len(us) == 0:
+        return 0, 0, win_img
+    pts = np.array([[us.min(), vs.min()], [us.max(), vs.min()], [us.max(), vs.max()],
+                    [us.min(), vs.max()]], dtype=np.float64)
+    pad = params.refine_max_shift + 2 * max(k for _, k in params.refine_stages)
+    q = apply(matrix, pts)
+    x0 = int(max(0, math.floor(q[:, 0].min() - pad)))
+    y0 = int(max(0, math.floor(q[:, 1].min() - pad)))
+    x1 = int(min(w, math.ceil(q[:, 0].max() + pad) + 1))
+    y1 = int(min(h, math.ceil(q[:, 1].max() + pad) + 1))
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return 0, 0, win_img
+    return x0, y0, win_img[y0:y1, x0:x1]
+
+
+def _ecc_stage(
+    tmpl: Image, ism_img: Image, ism_known: npt.NDArray[np.bool_], w: Matrix3, level: int,
+    ksize: int, crit: tuple[int, int, float],
+) -> Matrix3:
+    """One ECC stage on images reduced ``2**level`` times (pyrDown keeps x_half = x / 2)."""
+    t, i = tmpl.astype(np.float32), ism_img.astype(np.float32)
+    m = ism_known.astype(np.uint8)
+    for _ in range(level):
+        t = np.asarray(cv2.pyrDown(t), dtype=np.float32)
+        i = np.asarray(cv2.pyrDown(i), dtype=np.float32)
+        m = m[::2, ::2]
+    f = float(2 ** level)
+    scale = np.diag([1.0 / f, 1.0 / f, 1.0])
+    wl = (scale @ w @ np.linalg.inv(scale))[:2].astype(np.float32)
+    _, found = cv2.findTransformECC(t, i, wl,
+                                    cv2.MOTION_EUCLIDEAN, crit, np.ascontiguousarray(m), ksize)
+    full = np.vstack([np.asarray(found, dtype=np.float64), [0.0, 0.0, 1.0]])
+    return np.asarray(np.linalg.inv(scale) @ full @ scale, dtype=np.float64)
 
 
 def _rigid_about_centre(matrix: Matrix3, shape: tuple[int, int]) -> Matrix3:

@@ -380,7 +380,26 @@ def test_params_are_validated() -> None:
     with pytest.raises(ValueError):
         mt.MatchParams(unknown_level=0)
     with pytest.raises(ValueError):
+        mt.MatchParams(refine_stages=((0, 4),))
+    with pytest.raises(ValueError):
         mt.match_ism(np.zeros(5), np.zeros((5, 5)))
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (0, 7), (1, 1), (9, 9)])
+def test_empty_or_tiny_grids_are_refused_not_raised(shape: tuple[int, int]) -> None:
+    tiny = np.zeros(shape, np.int16)
+    other = mt.synthetic_floorplan(128, seed=1)
+    assert mt.match_ism(tiny, other).reason is mt.MatchReason.TOO_FEW_FEATURES
+    assert mt.match_ism(other, tiny).reason is mt.MatchReason.TOO_FEW_FEATURES
+
+
+def test_ratio_test_option_still_recovers_cut_isms() -> None:
+    params = mt.MatchParams(ratio=0.8, cross_check=False)
+    for seed in range(6):
+        case = make_case(seed, params)
+        res = case.match(params)
+        assert recovered(res, case.errors(mt.corrected_geometry(case.claimed, case.window_geom,
+                                                                 res))), res.reason
 
 
 def test_floorplan_is_seeded_and_structured() -> None:
