@@ -119,7 +119,9 @@ class TiledMap:
         ids = self.adopt_layers(names)
         t = self.tile_size
         data = np.zeros((len(self.layers), t, t), dtype=np.int16)
-        data[ids] = stack
+        # Clamp as insert_tile does: a tile stored under a wider clamp (another eps0) or damaged
+        # on disk would otherwise break the invariant Eq. 1's add-then-clip relies on.
+        data[ids] = np.clip(stack, self.limits[0], self.limits[1])
         tile = Tile(index, data, stamp=stamp, version=0, saved_version=0)
         self.tiles[index] = tile
         return tile
