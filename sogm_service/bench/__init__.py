@@ -1,0 +1,95 @@
+"""``sogm-service bench [NAMES] [--quick] [--json FILE]``: the performance suite.
+
+Every figure is a ratio against a baseline measured in the same run (medians of repeated,
+interleaved runs), with the absolute numbers beside it; see ``docs/performance.md``.  This is a
+benchmark, never a test: ``tests/test_bench.py`` runs ``--quick`` only to keep it working.
+
+Modules: :mod:`.core` (rows, timing, report), :mod:`.compute` (the pure core: fusion, SEVDS,
+matching), :mod:`.zbench` (through Zenoh and processes), :mod:`.procs` (helper processes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import traceback
+
+from sogm_service.bench.core import Benchmark, Row, notes, report, table, write_json
+
+
+def registry() -> list[Benchmark]:
+    """Every benchmark in report order (Zenoh ones are imported only when asked for)."""
+    from sogm_service.bench import compute
+
+    def z(name: str) -> object:
+        def run(quick: bool) -> Row:
+            from sogm_service.bench import zbench
+
+            result: Row = getattr(zbench, name)(quick)
+            return result
+        return run
+
+    return [
+        Benchmark("fuse_aligned", "aligned 1024x1024 prob_u8 ISM vs one numpy.add",
+                  compute.fuse_aligned),
+        Benchmark("fuse_rotated", "512x512 ISM at 30 deg and 1.5x res vs the same aligned",
+                  compute.fuse_rotated),
+        Benchmark("submap", "256x256x4 rotated biodds submap over Zenoh vs a raw get",
+                  z("submap")),  # type: ignore[arg-type]
+        Benchmark("ingest", "256x256 ISMs publisher -> server vs raw puts to a counter",
+                  z("ingestion")),  # type: ignore[arg-type]
+        Benchmark("sevds", "SEVDS 256x256x3 vs OpenCV SEEDS", compute.sevds),
+        Benchmark("memory", "100 m x 100 m at 5 cm, 8 layers: peak RSS vs raw bytes",
+                  z("memory")),  # type: ignore[arg-type]
+        Benchmark("startup", "serve until discoverable vs import zenoh",
+                  z("startup")),  # type: ignore[arg-type]
+        Benchmark("matching", "scan match of a 256x256 ISM vs one ORB detect",
+                  compute.matching),
+    ]
+
+
+def build_parser(names: list[str]) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sogm-service bench",
+                                description="Performance suite: ratios against baselines "
+                                            "measured in the same run.")
+    p.add_argument("names", nargs="*", metavar="NAME",
+                   help=f"benchmarks to run (default all): {', '.join(names)}")
+    p.add_argument("--quick", action="store_true",
+                   help="few repeats, under a minute (CI smoke; numbers are rough)")
+    p.add_argument("--json", metavar="FILE", default=None, help="write the results here")
+    return p
+
+
+def run_one(bench: Benchmark, quick: bool) -> Row:
+    """Run one benchmark; a crash becomes a failed row rather than ending the suite."""
+    try:
+        return bench.run(quick)
+    except Exception as exc:
+        traceback.print_exc()
+        return Row(bench.name, None, None, "", None, "", False,
+                   note=f"error: {type(exc).__name__}: {exc}"[:500])
+
+
+def main(argv: list[str] | None = None) -> int:
+    benches = registry()
+    by_name = {b.name: b for b in benches}
+    args = build_parser(list(by_name)).parse_args(argv)
+    unknown = [n for n in args.names if n not in by_name]
+    if unknown:
+        print(f"sogm-service bench: unknown benchmark(s) {unknown}; "
+              f"choose from {list(by_name)}", file=sys.stderr)
+        return 2
+    chosen = [by_name[n] for n in args.names] if args.names else benches
+    started = time.time()
+    rows = []
+    for bench in chosen:
+        print(f"running {bench.name}: {bench.summary} ...", file=sys.stderr, flush=True)
+        rows.append(run_one(bench, args.quick))
+    print(table(rows))
+    print()
+    print(notes(rows))
+    if args.json:
+        write_json(args.json, report(rows, args.quick, started))
+    errors = [r for r in rows if r.note.startswith("error")]
+    return 1 if errors else 0

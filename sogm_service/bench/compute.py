@@ -1,0 +1,141 @@
+"""Benchmarks of the pure core: fusion (aligned and rotated), SEVDS, scan matching."""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import ingest
+from sogm_service.bench.core import Row, interleaved, median, time_row, unavailable
+from sogm_service.geometry import Pose2D, TileLattice
+from sogm_service.messages import IsmMessage, PoseModel
+from sogm_service.tiles import TiledMap
+
+MAP_RES = 0.05
+
+
+def synthetic_ism(size: int, seed: int = 0) -> npt.NDArray[np.uint8]:
+    """A ``prob_u8`` ISM that looks like a laser scan: unknown, a free area, walls, objects.
+
+    Structured rather than random on purpose: random codes defeat branch prediction and
+    caches in a way no sensor does.
+    """
+    rng = np.random.default_rng(seed)
+    ism = np.full((size, size), 128, np.uint8)  # ~0.5: no information
+    c = size // 2
+    cv2.circle(ism, (c, c), int(size * 0.45), 60, -1)  # free space, p ~ 0.24
+    for _ in range(12):
+        x0, y0, x1, y1 = (int(v) for v in rng.integers(0, size, 4))
+        cv2.line(ism, (x0, y0), (x1, y1), 235, 2)  # walls, p ~ 0.92
+    for _ in range(6):
+        x, y = (int(v) for v in rng.integers(0, size, 2))
+        cv2.circle(ism, (x, y), int(rng.integers(3, 12)), 200, -1)
+    return ism
+
+
+def ism_message(codes: npt.NDArray[np.uint8], res: float, origin: Pose2D) -> IsmMessage:
+    return IsmMessage(resolution=res, origin=PoseModel(x=origin.x, y=origin.y, yaw=origin.yaw),
+                      width=codes.shape[1], height=codes.shape[0], encoding="prob_u8",
+                      data=np.ascontiguousarray(codes).tobytes())
+
+
+def fresh_map() -> TiledMap:
+    return TiledMap("bench", "map", TileLattice(MAP_RES, 256))
+
+
+def fuse_call(tiled: TiledMap, msg: IsmMessage) -> Callable[[], object]:
+    """What the server's worker does per ISM after decoding: LUT, resample, add, clamp."""
+    return lambda: ingest.fuse_ism(tiled, msg, "obstacle", "biodds")
+
+
+def add_floor(cells: int) -> Callable[[], object]:
+    rng = np.random.default_rng(1)
+    a = rng.integers(-100, 100, cells).astype(np.int16)
+    b = rng.integers(-100, 100, cells).astype(np.int16)
+    return lambda: np.add(a, b, out=a)
+
+
+def fuse_aligned(quick: bool) -> Row:
+    size = 1024
+    msg = ism_message(synthetic_ism(size), MAP_RES, Pose2D(0.0, 0.0, 0.0))
+    ours, base = interleaved(fuse_call(fresh_map(), msg), add_floor(size * size),
+                             20 if quick else 200)
+    return time_row("fuse_aligned_1024", ours, base, 2.0,
+                    "one numpy.add, int16, 1024x1024 cells, in place",
+                    "ISM prob_u8 on the map lattice: 16 tiles of 256x256; LUT+add+clamp")
+
+
+def fuse_rotated(quick: bool) -> Row:
+    size = 512
+    codes = synthetic_ism(size)
+    # Origin off the lattice, 30 degrees, ISM cells 1.5x the map's: every tile needs a warp.
+    rotated = ism_message(codes, 1.5 * MAP_RES, Pose2D(3.21, 2.17, math.radians(30.0)))
+    aligned = ism_message(codes, MAP_RES, Pose2D(0.0, 0.0, 0.0))
+    ours, base = interleaved(fuse_call(fresh_map(), rotated), fuse_call(fresh_map(), aligned),
+                             20 if quick else 200)
+    return time_row("fuse_rotated_512", ours, base, 4.0,
+                    "the same 512x512 ISM fused aligned",
+                    "30 deg, origin off the lattice, ISM cell = 1.5 map cells, biodds")
+
+
+def sevds(quick: bool) -> Row:
+    name, target = "sevds_256x256x3", "<= 1x"
+    fn = _find("benchmark_sevds_vs_seeds", ("sogm_service.sevds", "sogm_service.supercells"))
+    if fn is None:
+        return unavailable(name, target, "no benchmark_sevds_vs_seeds() yet")
+    result = _sevds_result(fn, 2 if quick else 7)
+    ours_s, base_s = result.get("sevds_s"), result.get("seeds_s")
+    if not isinstance(ours_s, float) or not isinstance(base_s, float):
+        return unavailable(name, target, f"no timings in {result}")
+    ratio = ours_s / base_s
+    details = {k: v for k, v in result.items() if isinstance(v, (int, float, str))}
+    return Row(name, ours_s * 1e3, base_s * 1e3, "ms", ratio, target, ratio <= 1.0,
+               "OpenCV SEEDS (ximgproc), same input, levels, bins, iterations and superpixel "
+               "count", f"sevds.benchmark_sevds_vs_seeds, best of repeats; "
+               f"{result.get('supercells')} supercells", details)
+
+
+def _sevds_result(fn: Callable[..., Any], repeats: int) -> dict[str, Any]:
+    """The 3-layer row of SEVDS's own timing function (its signature is SEVDS's business)."""
+    out = fn(layers=(3,), height=256, width=256, repeats=repeats)
+    rows = out if isinstance(out, list) else [out]
+    return dict(rows[0])
+
+
+def matching(quick: bool) -> Row:
+    fn = _find("benchmark_match", ("sogm_service.matching",))
+    if fn is None:
+        return unavailable("scan_match_256", "report", "no benchmark_match() yet")
+    repeats = 3 if quick else 20
+    result: dict[str, float] = fn(size=256, repeats=repeats)
+    orb = _orb_detect_time(repeats)
+    ours_s = result["median_s"]
+    return Row("scan_match_256", ours_s * 1e3, orb * 1e3, "ms", ours_s / orb, "report", None,
+               "one cv2 ORB detectAndCompute on a 256x256 image",
+               f"accepted={bool(result.get('accepted'))}, inliers={result.get('inliers', 0):g}",
+               {k: float(v) for k, v in result.items()})
+
+
+def _orb_detect_time(repeats: int) -> float:
+    img = synthetic_ism(256)
+    orb = cv2.ORB.create(nfeatures=500)
+    times = interleaved(lambda: orb.detectAndCompute(img, None), lambda: None, repeats)[0]
+    return median(times)
+
+
+def _find(name: str, modules: tuple[str, ...]) -> Callable[..., Any] | None:
+    """Import lazily: the modules belong to other engineers and may not exist yet."""
+    for module in modules:
+        try:
+            fn = getattr(importlib.import_module(module), name, None)
+        except ImportError:
+            continue
+        if callable(fn):
+            return fn
+    return None

@@ -1,0 +1,141 @@
+"""Helper processes of the Zenoh benchmarks: ``python -m sogm_service.bench.procs ROLE ...``.
+
+Each role opens its own session (never forked from a process that has one), installs its
+signal handlers before opening it, and closes it on SIGTERM or end of stdin.
+
+* ``queryable``: replies to every get on ``--key`` with one prepared payload of ``--size`` bytes
+  (the raw baseline of the submap benchmark).
+* ``counter``: a subscriber that only counts; prints ``done <t_first> <t_last>`` (wall clock)
+  every ``--count`` samples (the raw baseline of the ingestion benchmark).
+* ``publisher``: for every ``go`` line on stdin puts the ``--count`` ISM payloads (prepared
+  before timing, congestion control BLOCK) and prints ``sent <t_first> <t_last>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from sogm_service import codec
+from sogm_service.zsession import loopback_settings, open_session
+
+
+def _stop_event() -> threading.Event:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)
+
+
+def run_queryable(args: argparse.Namespace, stop: threading.Event) -> None:
+    payload = bytes(args.size)
+    session = open_session(loopback_settings(listen=args.listen))
+    try:
+        q = session.declare_queryable(args.key, lambda query: query.reply(query.key_expr,
+                                                                          payload))
+        _say("ready")
+        stop.wait()
+        q.undeclare()
+    finally:
+        session.close()
+
+
+def run_counter(args: argparse.Namespace, stop: threading.Event) -> None:
+    state = {"n": 0, "first": 0.0}
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        now = time.time()
+        if state["n"] == 0:
+            state["first"] = now
+        state["n"] += 1
+        if state["n"] == args.count:
+            _say(f"done {state['first']:.6f} {now:.6f}")
+            state["n"] = 0
+
+    session = open_session(loopback_settings(listen=args.listen))
+    try:
+        sub = session.declare_subscriber(args.key, on_sample)
+        _say("ready")
+        stop.wait()
+        sub.undeclare()
+    finally:
+        session.close()
+
+
+def ism_payloads(count: int, size: int, seed: int = 0) -> list[bytes]:
+    """``count`` encoded 256x256-class ISMs at robot-like poses (any heading) in a 20 m area."""
+    import numpy as np
+
+    from sogm_service.bench.compute import MAP_RES, ism_message, synthetic_ism
+    from sogm_service.geometry import Pose2D
+
+    rng = np.random.default_rng(seed)
+    codes = [synthetic_ism(size, s) for s in range(4)]
+    out = []
+    for k in range(count):
+        x, y = rng.uniform(0.0, 20.0, 2)
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        out.append(codec.encode(ism_message(codes[k % 4], MAP_RES, Pose2D(x, y, yaw))))
+    return out
+
+
+def run_publisher(args: argparse.Namespace, stop: threading.Event) -> None:
+    payloads = ism_payloads(args.count, args.size)
+    session = open_session(loopback_settings(connect=args.connect, mode="client"))
+    try:
+        pub = session.declare_publisher(args.key,
+                                        congestion_control=zenoh.CongestionControl.BLOCK)
+        _say("ready")
+        for line in sys.stdin:
+            if stop.is_set() or line.strip() != "go":
+                break
+            t0 = time.time()
+            for p in payloads:
+                pub.put(p)
+            _say(f"sent {t0:.6f} {time.time():.6f}")
+        pub.undeclare()
+    finally:
+        session.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m sogm_service.bench.procs")
+    sub = p.add_subparsers(dest="role", required=True)
+    q = sub.add_parser("queryable")
+    q.add_argument("--listen", required=True)
+    q.add_argument("--key", required=True)
+    q.add_argument("--size", type=int, required=True)
+    c = sub.add_parser("counter")
+    c.add_argument("--listen", required=True)
+    c.add_argument("--key", required=True)
+    c.add_argument("--count", type=int, required=True)
+    pb = sub.add_parser("publisher")
+    pb.add_argument("--connect", required=True)
+    pb.add_argument("--key", required=True)
+    pb.add_argument("--count", type=int, required=True)
+    pb.add_argument("--size", type=int, default=256)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    stop = _stop_event()  # before any session: an early SIGTERM still closes cleanly
+    roles: dict[str, Any] = {"queryable": run_queryable, "counter": run_counter,
+                             "publisher": run_publisher}
+    roles[args.role](args, stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,354 @@
+"""Benchmarks through real Zenoh sessions and processes: submap, ingestion, memory, start-up.
+
+Every process here is started with ``subprocess`` (never forked after a session exists) and
+ended by its own pid; sessions listen and connect on 127.0.0.1 only, multicast scouting off.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from sogm_service.bench.compute import MAP_RES, synthetic_ism
+from sogm_service.bench.core import Row, interleaved, median, percentile
+from sogm_service.client import MapClient
+from sogm_service.geometry import Pose2D
+from sogm_service.zsession import free_tcp_endpoint, loopback_settings, open_session
+
+PY = sys.executable
+
+
+class Proc:
+    """A child process this benchmark started (and alone ends, by pid)."""
+
+    def __init__(self, args: list[str], log: Path, stdin: bool = False) -> None:
+        self.log_path = log
+        self._log = open(log, "wb")  # noqa: SIM115 - lives as long as the process
+        self.popen = subprocess.Popen(
+            args, stdout=subprocess.PIPE, stderr=self._log,
+            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"}, text=True)
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def line(self, timeout: float = 30.0) -> str:
+        """Next stdout line (raises if the process dies or stays silent)."""
+        out: list[str] = []
+        stdout = self.popen.stdout
+        assert stdout is not None
+        reader = threading.Thread(target=lambda: out.append(stdout.readline()), daemon=True)
+        reader.start()
+        reader.join(timeout)
+        if not out or not out[0]:
+            raise RuntimeError(f"{self.popen.args!r} said nothing:\n{self.tail()}")
+        return out[0].strip()
+
+    def expect(self, word: str, timeout: float = 30.0) -> list[str]:
+        while True:
+            parts = self.line(timeout).split()
+            if parts and parts[0] == word:
+                return parts[1:]
+
+    def send(self, text: str) -> None:
+        stdin = self.popen.stdin
+        assert stdin is not None
+        stdin.write(text + "\n")
+        stdin.flush()
+
+    def tail(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text(errors="replace")[-3000:]
+
+    def stop(self, timeout: float = 15.0) -> None:
+        if self.popen.stdin is not None:
+            self.popen.stdin.close()
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGTERM)
+        try:
+            self.popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            self.popen.wait(5)
+        self._log.close()
+
+
+def _config(directory: Path, listen: str, queue_size: int = 64) -> Path:
+    path = directory / "server.toml"
+    path.write_text(f'[map]\nresolution = {MAP_RES}\n\n[zenoh]\nlisten = ["{listen}"]\n\n'
+                    f'[limits]\nqueue_size = {queue_size}\n', encoding="utf-8")
+    return path
+
+
+def _wait_port(endpoint: str, proc: Proc, timeout: float = 30.0) -> None:
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.popen.poll() is not None:
+            raise RuntimeError(f"process exited:\n{proc.tail()}")
+        with socket.socket() as s:
+            if s.connect_ex((host, int(port))) == 0:
+                return
+        time.sleep(0.02)
+    raise RuntimeError(f"nothing listens on {endpoint}:\n{proc.tail()}")
+
+
+@dataclass
+class Served:
+    proc: Proc
+    client: MapClient
+    endpoint: str
+
+
+@contextmanager
+def map_server(directory: Path) -> Iterator[Served]:
+    """A ``sogm-service serve`` process and a client connected to it, once discoverable."""
+    endpoint = free_tcp_endpoint()
+    proc = Proc([PY, "-m", "sogm_service", "serve", "--config",
+                 str(_config(directory, endpoint))], directory / "server.log")
+    try:
+        _wait_port(endpoint, proc)
+        with MapClient.connect(endpoint, timeout=10.0) as client:
+            deadline = time.monotonic() + 30.0
+            while not client.servers(timeout=1.0):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"server not discoverable:\n{proc.tail()}")
+            yield Served(proc, client, endpoint)
+    finally:
+        proc.stop()
+
+
+@contextmanager
+def helper(directory: Path, role: str, *args: str, stdin: bool = False) -> Iterator[Proc]:
+    proc = Proc([PY, "-m", "sogm_service.bench.procs", role, *args],
+                directory / f"{role}.log", stdin=stdin)
+    try:
+        proc.expect("ready")
+        yield proc
+    finally:
+        proc.stop()
+
+
+def wait_fused(client: MapClient, n: int, timeout: float = 300.0,
+               interval: float = 0.01) -> tuple[float, dict[str, int]]:
+    """Wall-clock time at which the server had fused or rejected ``n`` ISMs, and counters."""
+    deadline = time.monotonic() + timeout
+    while True:
+        counters = client.stats().counters
+        if counters.get("isms_fused", 0) + counters.get("isms_rejected", 0) >= n:
+            return time.time(), counters
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"only {counters} after {timeout} s")
+        time.sleep(interval)
+
+
+# -- submap -------------------------------------------------------------------------------
+# The client's default reply encoding (prob_f32: 4 B per cell, 1 MiB for 4 layers).
+WINDOW: dict[str, Any] = dict(x=12.8, y=12.8, yaw=0.5, width=256 * MAP_RES, height=256 * MAP_RES,
+                              resolution=MAP_RES, interp="biodds", encoding="prob_f32")
+
+
+def _fill_layers(client: MapClient, layers: int) -> None:
+    for k in range(layers):
+        client.publish_ism(f"ism/bench/layer{k}", synthetic_ism(512, k), resolution=MAP_RES,
+                           origin=Pose2D(0.0, 0.0, 0.0))
+    wait_fused(client, layers)
+
+
+def submap(quick: bool) -> Row:
+    repeats = 30 if quick else 400
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-") as tmp, \
+            map_server(Path(tmp)) as served:
+        client = served.client
+        _fill_layers(client, 4)
+        size = len(client.get_raw(client.key("submap"), WINDOW))
+        raw_ep = free_tcp_endpoint()
+        with helper(Path(tmp), "queryable", "--listen", raw_ep, "--key", "bench/raw",
+                    "--size", str(size)), \
+                MapClient.connect(raw_ep, timeout=10.0) as raw:
+            ours, base = interleaved(lambda: client.submap(**WINDOW),
+                                     lambda: raw.get_raw("bench/raw"), repeats, warmup=5)
+    return _submap_row(ours, base, size)
+
+
+def _submap_row(ours: list[float], base: list[float], size: int) -> Row:
+    m_o, m_b = median(ours) * 1e3, median(base) * 1e3
+    p_o, p_b = percentile(ours, 99) * 1e3, percentile(base, 99) * 1e3
+    ratio, p_ratio = m_o / m_b, p_o / p_b
+    return Row("submap_zenoh_256x4", m_o, m_b, "ms", ratio, "median <= 1.5x, p99 <= 3x",
+               ratio <= 1.5 and p_ratio <= 3.0,
+               f"raw Zenoh get of a prepared {size}-byte payload from another process",
+               f"p99 {p_o:.2f} vs {p_b:.2f} ms = {p_ratio:.2f}x; rotated 0.5 rad, biodds, "
+               "prob_f32 reply, client decode included",
+               {"p99_ms": p_o, "baseline_p99_ms": p_b, "p99_ratio": p_ratio,
+                "reply_bytes": float(size), "repeats": float(len(ours))})
+
+
+# -- ingestion ----------------------------------------------------------------------------
+def _rounds(pub: Proc, count: int, rounds: int,
+            finish: Callable[[int], float]) -> list[float]:
+    """Rates (ISMs/s) of ``rounds`` bursts; ``finish(k)`` returns the k-th burst's end time
+    (wall clock, comparable with the publisher's across processes)."""
+    rates = []
+    for k in range(1, rounds + 1):
+        pub.send("go")
+        t_first = float(pub.expect("sent", 300.0)[0])
+        rates.append(count / (finish(k) - t_first))
+    return rates
+
+
+def ingestion(quick: bool) -> Row:
+    count, rounds = (150, 2) if quick else (1500, 3)
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-") as tmp:
+        d = Path(tmp)
+        raw_rates = _raw_ingest(d, count, rounds)
+        ours_rates, counters = _server_ingest(d, count, rounds)
+    dropped = count * rounds - counters.get("isms_fused", 0)
+    ours, base = median(ours_rates), median(raw_rates)
+    ratio = ours / base
+    return Row("ingest_zenoh_256", ours, base, "ISM/s", ratio, ">= 0.5x, none dropped",
+               ratio >= 0.5 and dropped == 0,
+               "raw puts of the same payloads to a subscriber that only counts",
+               f"{count} ISMs x {rounds} bursts, any heading, biodds; dropped {dropped}, "
+               f"rejected {counters.get('isms_rejected', 0)}",
+               {"dropped": float(dropped), "count": float(count), "rounds": float(rounds)})
+
+
+def _publisher(d: Path, endpoint: str, key: str, count: int) -> Proc:
+    pub = Proc([PY, "-m", "sogm_service.bench.procs", "publisher", "--connect", endpoint,
+                "--key", key, "--count", str(count)], d / "publisher.log", stdin=True)
+    pub.expect("ready", 60.0)
+    return pub
+
+
+def _raw_ingest(d: Path, count: int, rounds: int) -> list[float]:
+    endpoint = free_tcp_endpoint()
+    with helper(d, "counter", "--listen", endpoint, "--key", "ism/**", "--count",
+                str(count)) as counter:
+        pub = _publisher(d, endpoint, "ism/bench/obstacle", count)
+        try:
+            return _rounds(pub, count, rounds,
+                           lambda k: float(counter.expect("done", 300.0)[1]))
+        finally:
+            pub.stop()
+
+
+def _server_ingest(d: Path, count: int, rounds: int) -> tuple[list[float], dict[str, int]]:
+    counters: dict[str, int] = {}
+
+    def finish(k: int) -> float:
+        nonlocal counters
+        t, counters = wait_fused(client, k * count)
+        return t
+
+    with map_server(d) as served:
+        client = served.client
+        pub = _publisher(d, served.endpoint, "ism/bench/obstacle", count)
+        try:
+            rates = _rounds(pub, count, rounds, finish)
+        finally:
+            pub.stop()
+    return rates, counters
+
+
+# -- memory -------------------------------------------------------------------------------
+def memory(quick: bool) -> Row:
+    side, layers, piece = 2000, 8, 500  # 100 m x 100 m at 5 cm; ISMs of 25 m x 25 m
+    raw_mb = side * side * layers * 2 / 1e6
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-") as tmp, \
+            map_server(Path(tmp)) as served:
+        proc, client = served.proc, served.client
+        n = 0
+        for k in range(layers):
+            for i in range(0, side, piece):
+                for j in range(0, side, piece):
+                    ism = synthetic_ism(piece, n)
+                    client.publish_ism(f"ism/bench/layer{k}", ism, resolution=MAP_RES,
+                                       origin=Pose2D(i * MAP_RES, j * MAP_RES, 0.0))
+                    n += 1
+        _, counters = wait_fused(client, n)
+        stats = client.stats()
+        peak, rss = _proc_status(proc.pid, "VmHWM"), _proc_status(proc.pid, "VmRSS")
+    limit = 1.3 * raw_mb + 150.0
+    return Row("memory_100m_5cm_8", peak, raw_mb, "MB", peak / raw_mb,
+               "peak RSS <= 1.3x raw + 150 MB", peak <= limit,
+               "raw int16 bytes of 8 layers x 2000 x 2000 cells",
+               f"server process VmHWM; limit {limit:.0f} MB; resident tiles "
+               f"{stats.extra.get('tiles_resident')}, {stats.extra.get('resident_mb')} MB; "
+               f"RSS at the end {rss:.0f} MB",
+               {"limit_mb": limit, "rss_end_mb": rss, "isms": float(n),
+                "fused": float(counters.get("isms_fused", 0))})
+
+
+def _proc_status(pid: int, field: str) -> float:
+    """A ``kB`` field of ``/proc/<pid>/status`` in MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return float(line.split()[1]) * 1024 / 1e6
+    raise RuntimeError(f"no {field} for pid {pid}")
+
+
+# -- start-up -----------------------------------------------------------------------------
+def startup(quick: bool) -> Row:
+    repeats = 2 if quick else 5
+    ours, base = [], []
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-") as tmp:
+        for _ in range(repeats):
+            base.append(_import_time())
+            ours.append(_serve_time(Path(tmp)))
+    m_o, m_b = median(ours), median(base)
+    return Row("startup_serve", m_o * 1e3, m_b * 1e3, "ms", m_o / m_b, "< 2 s", m_o < 2.0,
+               'python -c "import zenoh"',
+               "from spawning serve to its liveliness token seen by a client",
+               {"repeats": float(repeats), "max_ms": max(ours) * 1e3})
+
+
+def _wait_token(seen: threading.Event, proc: Proc, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not seen.wait(0.005):
+        if proc.popen.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"no liveliness token from serve:\n{proc.tail()}")
+
+
+def _import_time() -> float:
+    t0 = time.perf_counter()
+    subprocess.run([PY, "-c", "import zenoh"], check=True)
+    return time.perf_counter() - t0
+
+
+def _serve_time(d: Path) -> float:
+    """The client listens and the server connects to it, so the token's arrival is the moment
+    the server became discoverable (no polling delay)."""
+    ours_ep = free_tcp_endpoint()
+    seen = threading.Event()
+    session = open_session(loopback_settings(listen=ours_ep))
+    try:
+        sub = session.liveliness().declare_subscriber(
+            "sogm/default/@server/*",
+            lambda s: seen.set() if s.kind == zenoh.SampleKind.PUT else None)
+        t0 = time.perf_counter()
+        proc = Proc([PY, "-m", "sogm_service", "serve", "--listen", free_tcp_endpoint(),
+                     "--connect", ours_ep], d / "startup.log")
+        try:
+            _wait_token(seen, proc)
+            elapsed = time.perf_counter() - t0
+        finally:
+            proc.stop()
+        sub.undeclare()
+    finally:
+        session.close()
+    return elapsed
