@@ -228,6 +228,7 @@ class TiledMap:
                 if tile is None:
                     continue
                 tile.last_used = time.monotonic()
+                self.tiles.move_to_end((i, j))  # a read is a use: keep the LRU order true
                 self._copy_block(tile, (i, j), box, layer_ids, out)
         return out
 
