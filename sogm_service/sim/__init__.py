@@ -8,7 +8,28 @@
 * :mod:`.offline`: drive robots over a world and fuse their ISMs without Zenoh.
 * :mod:`.fleet`: the same robots publishing over Zenoh (the only module here that imports zenoh).
 
-Everything here is deterministic by seed.
+Everything here is deterministic by seed.  The package namespace re-exports the pure parts
+(not :mod:`.fleet`, so importing the simulator never pulls in Zenoh).
 """
 
 from __future__ import annotations
+
+from sogm_service.sim.offline import OfflineMap, map_scans, map_world
+from sogm_service.sim.robots import SimStep, simulate
+from sogm_service.sim.sensors import SemanticCamera, SensorIsm, TiltedLaser, default_sensors
+from sogm_service.sim.worlds import World, tabletop_world, warehouse_world
+
+__all__ = [
+    "OfflineMap",
+    "SemanticCamera",
+    "SensorIsm",
+    "SimStep",
+    "TiltedLaser",
+    "World",
+    "default_sensors",
+    "map_scans",
+    "map_world",
+    "simulate",
+    "tabletop_world",
+    "warehouse_world",
+]
