@@ -13,6 +13,7 @@ raises :class:`QueryTimeoutError`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -33,8 +34,10 @@ from sogm_service.messages import (
     IsmMessage,
     PoseMessage,
     PoseModel,
+    RobotTilesReply,
     StatsReply,
     SupercellReply,
+    TileEvent,
 )
 from sogm_service.zsession import loopback_settings, open_session
 
@@ -175,6 +178,31 @@ class MapClient:
 
     def stats(self) -> StatsReply:
         return self._get(StatsReply, "stats")
+
+    def robots(self) -> RobotTilesReply:
+        """Each robot's current tile (its last tile-switch event)."""
+        return self._get(RobotTilesReply, "robots")
+
+    def tiles(self, i: int | None = None, j: int | None = None,
+              timeout: float | None = None) -> dict[tuple[int, int], bytes]:
+        """Whole tiles in the store's file format (:mod:`sogm_service.tilestore`): one tile, or
+        every tile of the map when ``i``/``j`` are omitted."""
+        key = self.key("tiles", "**") if i is None or j is None else \
+            self.key("tiles", str(i), str(j))
+        out: dict[tuple[int, int], bytes] = {}
+        for reply in self.session.get(key, timeout=timeout or self.timeout):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).rsplit("/", 2)
+            out[(int(parts[1]), int(parts[2]))] = reply.ok.payload.to_bytes()
+        return out
+
+    def subscribe_tile_events(self, callback: Callable[[TileEvent], None]) -> zenoh.Subscriber:
+        """Call ``callback`` with every tile-switch event (undeclare the returned subscriber
+        or close the client to stop)."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(codec.decode(TileEvent, sample.payload.to_bytes()))
+        return self.session.declare_subscriber(self.key("events", "tile"), on_sample)
 
     def servers(self, timeout: float | None = None) -> list[str]:
         """Ids of the live servers of this map (liveliness tokens)."""

@@ -62,6 +62,7 @@ class IsmSource(_Section):
 class TileSettings(_Section):
     hysteresis_m: Annotated[float, Field(ge=0)] = 1.0
     roi_radius_tiles: Annotated[int, Field(ge=0, le=16)] = 1
+    replicate_on_start: bool = False
 
 
 class StorageSettings(_Section):

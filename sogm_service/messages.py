@@ -313,6 +313,14 @@ class TileEvent(WireModel):
     stamp: float
 
 
+class RobotTilesReply(WireModel):
+    """Each robot's current tile (its last tile-switch event): what a late joiner needs."""
+
+    schema_name: ClassVar[str] = "robot_tiles"
+    map: str
+    robots: list[TileEvent]
+
+
 class InfoReply(WireModel):
     schema_name: ClassVar[str] = "info"
     map: str
@@ -352,5 +360,5 @@ class ErrorReply(WireModel):
 
 SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
     IsmMessage, PoseMessage, SubmapRequest, FusedRequest, SupercellRequest, GridReply,
-    FusedReply, SupercellReply, TileEvent, InfoReply, StatsReply, ErrorReply,
+    FusedReply, SupercellReply, TileEvent, RobotTilesReply, InfoReply, StatsReply, ErrorReply,
 )

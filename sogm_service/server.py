@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import zenoh
 from pydantic import BaseModel
 
@@ -252,7 +253,10 @@ class MapServer:
         geometry = self.correct_geometry(msg, layer, source)
         with self.lock:
             touched = ingest.fuse_ism(self.map, msg, layer, source.interp, geometry)
-        self.persistence.touched(touched, msg.robot)
+        centre = ingest.ism_geometry(msg).cell_to_world()[:2] @ np.array(
+            [(msg.width - 1) / 2, (msg.height - 1) / 2, 1.0])
+        self.persistence.touched(touched, msg.robot, (float(centre[0]), float(centre[1])),
+                                 msg.stamp)
 
     def correct_geometry(self, msg: IsmMessage, layer: str, source: IsmSource) -> Any:
         """Scan matching hook: returns a corrected geometry or ``None`` (see matching)."""

@@ -13,6 +13,7 @@ mutation and reads with its own lock.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections import OrderedDict
@@ -67,6 +68,13 @@ class TiledMap:
         self.tiles: OrderedDict[TileIndex, Tile] = OrderedDict()
         self.stored: set[TileIndex] = set()
         self.loader = loader
+        # Versions come from one map-wide clock, never per tile: a tile evicted and loaded
+        # back must not reuse version numbers that an in-flight save may still confirm.
+        self._clock = itertools.count(1)
+
+    def tick(self) -> int:
+        """The next version number (strictly increasing over the map's lifetime)."""
+        return next(self._clock)
 
     # -- layers ---------------------------------------------------------------------------
     def layer_id(self, layer: str, create: bool = False) -> int:
@@ -102,7 +110,8 @@ class TiledMap:
             tile = self._load(index)
         if tile is None and create:
             t = self.tile_size
-            tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16))
+            tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16),
+                        version=self.tick())
             self.tiles[index] = tile
         if tile is not None:
             tile.last_used = time.monotonic()
@@ -122,7 +131,8 @@ class TiledMap:
         # Clamp as insert_tile does: a tile stored under a wider clamp (another eps0) or damaged
         # on disk would otherwise break the invariant Eq. 1's add-then-clip relies on.
         data[ids] = np.clip(stack, self.limits[0], self.limits[1])
-        tile = Tile(index, data, stamp=stamp, version=0, saved_version=0)
+        version = self.tick()
+        tile = Tile(index, data, stamp=stamp, version=version, saved_version=version)
         self.tiles[index] = tile
         return tile
 
@@ -135,7 +145,9 @@ class TiledMap:
             raise ValueError(f"tile stack shape {stack.shape} != {(len(names), t, t)}")
         data = np.zeros((len(self.layers), t, t), dtype=np.int16)
         data[ids] = np.clip(stack, self.limits[0], self.limits[1])
-        tile = Tile(index, data, stamp=stamp, version=1, saved_version=1 if saved else 0)
+        version = self.tick()
+        tile = Tile(index, data, stamp=stamp, version=version,
+                    saved_version=version if saved else -1)
         self.tiles[index] = tile
         self.tiles.move_to_end(index)
         return tile
@@ -189,7 +201,7 @@ class TiledMap:
                 assert tile is not None
             self._grow(tile, lid)
             logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch, self.limits)
-            tile.version += 1
+            tile.version = self.tick()
             tile.stamp = max(tile.stamp, stamp)
             touched.append(index)
         return touched
