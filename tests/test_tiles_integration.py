@@ -235,3 +235,20 @@ def test_second_server_copies_the_map_through_tiles(tmp_path: Path) -> None:
     assert stats.counters.get("replica_tiles_copied", 0) >= 4
     assert got.layers == want.layers
     np.testing.assert_array_equal(got.data, want.data)
+
+
+def test_sigterm_flushes_every_queued_ism_to_the_store(tmp_path: Path) -> None:
+    store_dir = tmp_path / "store"
+    sections = {"storage": {"directory": str(store_dir), "checkpoint_interval_s": 60.0}}
+    data = np.full((300, 300), 134, np.uint8)
+    inc = int(logodds.increment_lut("prob_u8")[134])
+    srv = start_server(tmp_path, sections)
+    with srv.client() as client:
+        for _ in range(25):
+            client.publish_ism("ism/r/laser/obstacle", data, resolution=0.05)
+    # No checkpoint has run (60 s interval): only the shutdown flush can save these.
+    assert srv.terminate(timeout=15) == 0
+    with TileStore(store_dir, "default", 0.05, 256) as store:
+        stored = store.load(0, 0)
+    assert stored is not None
+    assert _prefix_count(stored.data[0, :200, :200], inc, 10**6) == 25
