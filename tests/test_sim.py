@@ -91,6 +91,12 @@ def test_odometry_noise_drifts_only_when_asked(table: World) -> None:
     drift = [math.hypot(s.pose.x - s.true_pose.x, s.pose.y - s.true_pose.y) for s in noisy]
     assert drift[0] == 0 and max(drift) > 1e-4
     assert [s.true_pose for s in exact] == [s.true_pose for s in noisy]
+    # ISMs are published where the robot believes it is: at the reported (drifted) pose.
+    for s in noisy:
+        laser_ism = s.isms[0]
+        assert laser_ism.layer == "obstacle"
+        assert math.isclose(math.remainder(laser_ism.geometry.origin.yaw - s.pose.yaw, math.tau),
+                            0.0, abs_tol=1e-9)
 
 
 def test_laser_ism_agrees_with_ground_truth(warehouse: World) -> None:
@@ -167,6 +173,12 @@ def test_camera_isms_encode_labels(table: World) -> None:
         assert ((ism.prob == np.float32(cam.p_hit)) == (visible & (labels == k))).all()
         assert ((ism.prob == 0.5) == ~visible).all()
         assert max(ism.geometry.shape) <= 256
+
+
+def test_default_cameras_are_coarser_than_the_map(table: World, warehouse: World) -> None:
+    for world in (table, warehouse):
+        cams = [s for s in default_sensors(world) if isinstance(s, SemanticCamera)]
+        assert cams and all(c.resolution > world.geometry.resolution for c in cams)
 
 
 def test_ism_generation_is_fast(table: World, warehouse: World) -> None:
