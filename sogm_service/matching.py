@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Literal
 
@@ -407,14 +407,30 @@ def refine_ecc(
     # ECC works on the window block under the ISM's known cells only (the rest cannot count).
     x0, y0, tmpl = _ecc_template(win_img, ism_known, matrix, params)
     crop = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
-    w = np.linalg.inv(_rigid_about_centre(matrix, ism_img.shape)) @ crop
+    to_crop = np.linalg.inv(crop) @ _rigid_about_centre(matrix, ism_img.shape)
+    inp, known = ism_img, ism_known
+    if abs(math.atan2(to_crop[1, 0], to_crop[0, 0])) > math.radians(60.0):
+        # OpenCV's Euclidean ECC reads its angle back with asin, so it cannot hold rotations
+        # beyond 90 degrees: pre-warp the ISM into the crop and solve for the residual only.
+        # (Not always: the extra interpolation costs accuracy, ~0.1 cell on partial views.)
+        size = (tmpl.shape[1], tmpl.shape[0])
+        inp = np.asarray(cv2.warpAffine(ism_img, to_crop[:2], size, flags=cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_CONSTANT,
+                                        borderValue=params.unknown_level), dtype=np.uint8)
+        known = np.asarray(cv2.warpAffine(ism_known.astype(np.uint8), to_crop[:2], size,
+                                          flags=cv2.INTER_NEAREST), dtype=bool)
+        pre = to_crop
+    else:
+        pre = np.eye(3)
+    w = np.linalg.inv(to_crop) @ pre  # crop cells -> input cells
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.refine_iters, 1e-4)
     try:
         for level, ksize in params.refine_stages:
-            w = _ecc_stage(tmpl, ism_img, ism_known, w, level, ksize, crit)
+            w = _ecc_stage(tmpl, inp, known, w, level, ksize, crit)
     except cv2.error:
         return None
-    return np.asarray(np.linalg.inv(w @ np.linalg.inv(crop)), dtype=np.float64)
+    # ISM -> input -> crop -> window.
+    return np.asarray(crop @ np.linalg.inv(w) @ pre, dtype=np.float64)
 
 
 def _ecc_template(
@@ -609,7 +625,11 @@ def match_ism(
 
     ``ism_logodds`` (``h x w``) and ``map_window_logodds`` (``H x W``) share one resolution;
     ``prior`` maps ISM cells to window cells under the claimed pose (default: centred,
-    axis-aligned - what :func:`match_window` produces).  Never raises on content: every
+    axis-aligned - what :func:`match_window` produces).  Resample the window with
+    :func:`match_window` (the ISM's own frame): any other window works too (give its
+    :func:`prior_matrix`), but then descriptors must be rotation-invariant, which is weaker.
+    The window must extend ``params.window_margin`` beyond the ISM or large corrections fall
+    off its edge.  Raises ``ValueError`` only for non-2-D arrays; never on content: every
     failure is a refused result with its :class:`MatchReason`.
     """
     t0 = time.perf_counter()
@@ -619,6 +639,10 @@ def match_ism(
     if ism.ndim != 2 or win.ndim != 2:
         raise ValueError("ISM and map window must be 2-D grids")
     pr = default_prior(ism.shape, win.shape) if prior is None else np.asarray(prior, np.float64)
+    if p.upright and abs(math.atan2(pr[1, 0], pr[0, 0])) > p.max_rotation:
+        # The window is not in the ISM's frame (not from match_window): upright descriptors
+        # would face a large rotation, so let ORB orient them.
+        p = replace(p, upright=False)
     imgs = (render_u8(ism, p), render_u8(win, p))
     f_ism = detect(imgs[0], p)
     f_win = detect(imgs[1], p)

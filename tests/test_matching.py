@@ -492,3 +492,23 @@ def pose_error(a: Pose2D, b: Pose2D) -> tuple[float, float]:
     """(position error in m, heading error in degrees)."""
     return math.hypot(a.x - b.x, a.y - b.y), abs(math.degrees(math.remainder(a.yaw - b.yaw,
                                                                              2 * math.pi)))
+
+
+def test_a_map_aligned_window_also_works() -> None:
+    """The window need not be in the ISM's frame: any window with its prior matrix will do."""
+    params = mt.MatchParams()
+    plan = mt.synthetic_floorplan(PLAN, seed=11)
+    plan_geom = GridGeometry(RES, PLAN, PLAN)
+    ok = 0
+    for k in range(8):
+        truth = grid_at(320 + 5 * k, 300 - 4 * k, 0.6 + 0.4 * k)
+        claimed = grid_at(326 + 5 * k, 296 - 4 * k, 0.6 + 0.4 * k + math.radians(6))
+        m = params.window_margin(ISM, ISM) + ISM
+        wg = plan_geom.subgrid(320 - m, 300 - m, 2 * m, 2 * m)  # map axes, not the ISM's
+        win = resample_logodds(plan, plan_geom, wg, "biodds")
+        ism = resample_logodds(plan, plan_geom, truth, "nearest")
+        res = mt.match_ism(ism, win, params, mt.prior_matrix(claimed, wg))
+        if res.accepted:
+            err = centre_error(mt.corrected_geometry(claimed, wg, res), truth)
+            ok += err <= 1.0
+    assert ok >= 7
