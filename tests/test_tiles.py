@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
+from sogm_service.resample import dst_to_src, resample_logodds
 from sogm_service.tiles import TiledMap
 
 RES = 0.1
@@ -88,7 +89,6 @@ def test_window_from_centre_pose_across_tiles() -> None:
     m = new_map()
     inc = np.full((16, 16), 700, np.int16)
     m.fuse("a", inc, GridGeometry(RES, 16, 16, Pose2D(-0.8, -0.8, 0.0)))
-    from sogm_service.geometry import window_geometry
     w = window_geometry(0.0, 0.0, 0.0, 1.2, 1.2, RES)  # centred on the corner of 4 tiles
     got = m.sample(w, ["a"])[0]
     assert got.shape == (12, 12) and (got == 700).all()
@@ -126,8 +126,8 @@ def test_rotated_ism_with_biodds_peaks_at_the_marked_cell() -> None:
     m.fuse("a", inc, GridGeometry(0.2, 6, 6, origin))  # biodds: bilinear in log-odds
     centre = np.array([origin.x, origin.y]) + np.array(
         [[math.cos(1.0), -math.sin(1.0)], [math.sin(1.0), math.cos(1.0)]]) @ [0.9, 0.3]
-    best = max(((cell_value(m, "a", c, r), c, r) for c in range(-20, 20)
-                for r in range(-20, 20)))
+    best = max((cell_value(m, "a", c, r), c, r) for c in range(-20, 20)
+                for r in range(-20, 20))
     assert 0 < best[0] <= 4000
     peak = np.array([(best[1] + 0.5) * RES, (best[2] + 0.5) * RES])
     assert np.linalg.norm(peak - centre) <= RES * math.sqrt(0.5) + 1e-9
@@ -242,3 +242,32 @@ def test_insert_tile_clamps_and_adopts_layers() -> None:
     assert (got[0] == lo).all() and (got[1] == hi).all()
     with pytest.raises(ValueError):
         m.insert_tile((0, 0), ["x"], np.zeros((1, T, T + 1), np.int16), 0.0, False)
+
+
+@pytest.mark.parametrize("interp", ["nearest", "biodds"])
+def test_tiles_behave_like_one_big_grid(interp: str) -> None:
+    """Fusing tile by tile equals resampling into one grid covering them all (within OpenCV's
+    1/32-cell position rounding, which differs between the per-tile sub-grids)."""
+    rng = np.random.default_rng(11)
+    m = new_map()
+    lo, hi = m.limits
+    inc = rng.integers(-3000, 3001, (15, 17)).astype(np.int16)
+    ism = GridGeometry(0.13, 17, 15, Pose2D(-0.71, -0.43, 0.7))
+    m.fuse("a", inc, ism, interp)
+    big = GridGeometry(RES, 60, 60, Pose2D(-3.2, -3.2, 0.0))
+    ref = np.clip(resample_logodds(inc, ism, big, interp), lo, hi).astype(np.int64)
+    got = m.sample(big, ["a"])[0].astype(np.int64)
+    # ISM cell coordinates of every big-grid cell centre
+    mm = dst_to_src(ism, big)
+    uu, vv = np.meshgrid(np.arange(60), np.arange(60))
+    su = mm[0, 0] * uu + mm[0, 1] * vv + mm[0, 2]
+    sv = mm[1, 0] * uu + mm[1, 1] * vv + mm[1, 2]
+    inside = (su > -0.5) & (su < 16.5) & (sv > -0.5) & (sv < 14.5)  # within the ISM's area
+    beyond = (su < -1) | (su > 17) | (sv < -1) | (sv > 15)  # past every interpolation reach
+    assert inside.sum() > 300 and beyond.sum() > 2000
+    assert not got[beyond].any()
+    if interp == "nearest":
+        assert (got[inside] != ref[inside]).mean() < 0.02
+    else:  # a neighbour spread of at most 6000 units moved by 1/32 cell on each axis
+        assert np.abs(got[inside] - ref[inside]).max() <= 6000 * 2 / 32
+        assert (got[inside] == ref[inside]).mean() > 0.9
