@@ -105,6 +105,7 @@ def resample_prob(
     if interp == "bilinear":
         return warp(p32, src, dst, "linear", 0.5)
     if interp == "biodds":
+        eps0 = logodds.check_eps0(eps0)  # eps0 = 0 gave logit +-inf and NaN cells
         # Clamp in float64: float32(1 - eps0) is not 1 - eps0 (for eps0 = 1e-6 the upper bound
         # became 13.80 nats against a lower bound of -13.82), which skewed Eq. 3's bounds.
         clamped = np.clip(np.asarray(p, dtype=np.float64), eps0, 1.0 - eps0)
