@@ -435,3 +435,11 @@ def test_shape_mismatch_and_unknown_interp_are_refused() -> None:
         resample_prob(np.zeros((4, 3)), g, g, "nearest")
     with pytest.raises(ValueError):
         resample_logodds(np.zeros((3, 4), np.int16), g, g, "cubic")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("eps0", [0.0, -0.1, 0.5, 0.7, math.nan])
+def test_biodds_refuses_an_unusable_eps0(eps0: float) -> None:
+    # eps0 = 0 would make certain cells +-inf log-odds and their neighbours NaN
+    g = GridGeometry(1.0, 2, 1)
+    with pytest.raises(ValueError):
+        resample_prob(np.array([[1.0, 0.0]]), g, g, "biodds", eps0)
