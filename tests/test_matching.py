@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sogm_service import logodds
 from sogm_service import matching as mt
@@ -512,3 +514,27 @@ def test_a_map_aligned_window_also_works() -> None:
             err = centre_error(mt.corrected_geometry(claimed, wg, res), truth)
             ok += err <= 1.0
     assert ok >= 7
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=st.floats(-50, 50), y=st.floats(-50, 50), yaw=st.floats(-math.pi, math.pi),
+       dx=st.floats(-1, 1), dy=st.floats(-1, 1), dyaw=st.floats(-0.3, 0.3),
+       w=st.integers(3, 300), h=st.integers(3, 300))
+def test_corrected_geometry_recovers_any_true_geometry(x: float, y: float, yaw: float,
+                                                      dx: float, dy: float, dyaw: float,
+                                                      w: int, h: int) -> None:
+    """For any claimed/true pair, a match that found the true placement yields the truth."""
+    truth = GridGeometry(0.1, w, h, Pose2D(x, y, yaw))
+    claimed = GridGeometry(0.1, w, h, Pose2D(x + dx, y + dy, yaw + dyaw))
+    wg = mt.match_window(claimed, mt.MatchParams())
+    res = mt.MatchResult(True, mt.MatchReason.OK, None, mt.prior_matrix(truth, wg),
+                         mt.prior_matrix(claimed, wg), 0, 0, 0, 0, 0.0, 0.0, 0.0)
+    np.testing.assert_allclose(mt.corrected_geometry(claimed, wg, res).cell_to_world(),
+                               truth.cell_to_world(), atol=1e-7)
+    corr, distortion = mt.correction_of(mt.prior_matrix(truth, wg), res.prior, (h, w))
+    assert distortion < 1e-6 and corr.scale == pytest.approx(1.0)
+    # The correction turns the claimed heading back onto the true one.
+    assert math.remainder(corr.dtheta + dyaw, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
+    # The shift is the claimed -> true displacement of the ISM's centre, in cells.
+    assert corr.translation * 0.1 == pytest.approx(
+        float(np.hypot(*(centre(truth) - centre(claimed)))), abs=1e-7)
