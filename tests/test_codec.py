@@ -297,9 +297,10 @@ def test_invalid_values_are_invalid_value() -> None:
 msgpack_objects = st.recursive(
     st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1)
     | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=8)
-    | st.binary(max_size=16),
+    | st.binary(max_size=16)
+    | st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=4)),
     lambda children: st.lists(children, max_size=4)
-    | st.dictionaries(st.text(max_size=8), children, max_size=4),
+    | st.dictionaries(st.text(max_size=8) | st.binary(max_size=4), children, max_size=4),
     max_leaves=12,
 )
 model_classes = st.sampled_from(SCHEMA_MODELS)
