@@ -1,0 +1,507 @@
+"""The paper's evaluation (section IV): SEVDS against OpenCV's superpixels on table-top SOGMs.
+
+``sogm-service eval supercells [--out DIR] [--scenes N] [--seed S] [--quick]`` runs
+:func:`run_supercell_evaluation`:
+
+1. **Scenes.**  ``scenes`` randomised table-top rooms (:func:`sogm_service.sim.worlds.
+   tabletop_world`, seeds ``seed, seed + 1, ...``; ground-truth classes unknown / floor / table /
+   obstacle), mapped by the simulated tilted laser and semantic camera
+   (:func:`sogm_service.sim.offline.map_world`) into an N-layer SOGM.  As in the paper the SOGM
+   stack is the multi-channel input of every algorithm.
+2. **Algorithms.**  SEVDS with both move criteria (``SEVDS`` = the paper's receiver rule
+   "D(c_hat) < D(c)", ``SEVDS-E`` = the total-energy variant), and OpenCV's SEEDS, SLIC, SLICO
+   and LSC.  OpenCV gets the stack as an 8-bit image ``round(255 p)`` (SEEDS needs integers).
+3. **Matched counts and tuning.**  Superpixel counts follow SEVDS's initial grid: block edges
+   ``8, 12, ..., 32`` cells (the paper's rule of thumb is 8); SEEDS gets that count, SLIC / SLICO
+   / LSC the region size of the same edge.  At every count each algorithm runs a small grid of its
+   own parameters and keeps the set minimising the scene mean of ``(1 - BR) + UE`` (Stutz et al.;
+   one parameter set for all scenes, not one per scene).
+4. **Metrics** (:mod:`sogm_service.metrics`): Pureness (Eq. 12, on the classes), ICV and EV (on the
+   probability stack), UE and BR (on ground-truth segments: the 4-connected components of the
+   classes).
+5. **Outputs** in ``out_dir``: ``results.csv`` (every algorithm, scene and count with the chosen
+   parameters), ``results.md`` (tables: at the paper's 8-cell rule, and the mean over counts),
+   ``<metric>.png`` (each metric over the number of superpixels, paper Fig. 12-16) and
+   ``segmentations.png`` (paper Fig. 11: class-majority colouring on top, boundaries in red below).
+
+The plots are drawn with OpenCV (matplotlib is not a dependency): :func:`line_plot`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import itertools
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service import metrics
+from sogm_service.sevds import SevdsParams, sevds
+
+Labels = npt.NDArray[np.int32]
+Params = dict[str, float | int | str]
+
+METRICS: tuple[str, ...] = ("pureness", "icv", "ev", "ue", "br")
+METRIC_TITLES: dict[str, str] = {
+    "pureness": "Pureness (Eq. 12, higher is better)",
+    "icv": "Intra-Cluster Variation (lower is better)",
+    "ev": "Explained Variation (higher is better)",
+    "ue": "Undersegmentation Error (lower is better)",
+    "br": "Boundary Recall (higher is better)",
+}
+ALGORITHMS: tuple[str, ...] = ("SEVDS", "SEVDS-E", "SEEDS", "SLIC", "SLICO", "LSC")
+BLOCKS_FULL: tuple[int, ...] = (8, 12, 16, 20, 24, 28, 32)
+BLOCKS_QUICK: tuple[int, ...] = (8, 16, 32)
+REFERENCE_BLOCK = 8  # the paper's rule of thumb: the smallest object, 8 cells
+
+
+@dataclass(frozen=True, slots=True)
+class Scene:
+    """One evaluation input: SOGM stack ``(N, H, W)`` in [0, 1] and its ground truth."""
+
+    name: str
+    layers: tuple[str, ...]
+    stack: npt.NDArray[np.float32]
+    classes: npt.NDArray[np.uint8]
+    class_names: tuple[str, ...]
+    segments: Labels  # ground-truth segments for UE and BR: see gt_segments
+
+    @classmethod
+    def build(cls, name: str, layers: Sequence[str], stack: npt.ArrayLike,
+              classes: npt.ArrayLike, class_names: Sequence[str]) -> Scene:
+        """A scene with its segments derived from the classes; the stack clipped to [0, 1]."""
+        st = np.clip(np.asarray(stack, np.float32), 0.0, 1.0)
+        cl = np.asarray(classes, np.uint8)
+        if st.ndim != 3 or st.shape[1:] != cl.shape:
+            raise ValueError(f"stack {st.shape} does not match classes {cl.shape}")
+        return cls(name, tuple(layers), st, cl, tuple(class_names), gt_segments(cl))
+
+
+@dataclass
+class EvaluationResult:
+    """What one evaluation run produced (``rows``: one dict per algorithm, scene and count)."""
+
+    out_dir: Path
+    rows: list[dict[str, Any]]
+    markdown: str
+    files: list[Path] = field(default_factory=list)
+    chosen: dict[tuple[str, int], Params] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def gt_segments(classes: npt.ArrayLike) -> Labels:
+    """Ground-truth segments: the 4-connected components of every class, numbered 0..G-1."""
+    cls = np.asarray(classes)
+    out = np.zeros(cls.shape, np.int32)
+    offset = 0
+    for c in np.unique(cls):
+        n, comp = cv2.connectedComponents((cls == c).astype(np.uint8), connectivity=4)
+        mask = comp > 0
+        out[mask] = comp[mask] + offset - 1
+        offset += n - 1
+    return out
+
+
+def tabletop_scene(seed: int) -> Scene:
+    """A paper-like table-top room (sim package) mapped by simulated laser + camera."""
+    from sogm_service.sim.offline import map_world
+    from sogm_service.sim.worlds import tabletop_world
+
+    world = tabletop_world(seed)
+    layers, stack = map_world(world, seed)
+    return Scene.build(f"scene{seed}", layers, stack, world.labels, world.classes)
+
+
+# --------------------------------------------------------------------------- algorithms
+
+
+def _to_u8(stack: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
+    """``(N, H, W)`` probabilities -> ``(H, W, N)`` 8-bit image for OpenCV."""
+    return np.ascontiguousarray(np.rint(stack.transpose(1, 2, 0) * 255.0).astype(np.uint8))
+
+
+def _run_sevds(criterion: str) -> Callable[[npt.NDArray[np.float32], int, Params], Labels]:
+    def run(stack: npt.NDArray[np.float32], block: int, p: Params) -> Labels:
+        params = SevdsParams(block_size=block, levels=3, bins=int(p["bins"]), iterations=4,
+                             gamma=float(p["gamma"]), criterion=criterion)  # type: ignore[arg-type]
+        return sevds(stack, params).labels
+    return run
+
+
+def _run_seeds(stack: npt.NDArray[np.float32], block: int, p: Params) -> Labels:
+    img = _to_u8(stack)
+    h, w, c = img.shape
+    count = -(-h // block) * -(-w // block)
+    seeds = cv2.ximgproc.createSuperpixelSEEDS(w, h, c, count, int(p["levels"]), int(p["prior"]),
+                                               int(p["bins"]), False)
+    seeds.iterate(img, 4)
+    return np.asarray(seeds.getLabels(), np.int32)
+
+
+def _run_slic(kind: int) -> Callable[[npt.NDArray[np.float32], int, Params], Labels]:
+    def run(stack: npt.NDArray[np.float32], block: int, p: Params) -> Labels:
+        sp = cv2.ximgproc.createSuperpixelSLIC(_to_u8(stack), kind, block, float(p["ruler"]))
+        sp.iterate(10)
+        sp.enforceLabelConnectivity(25)
+        return np.asarray(sp.getLabels(), np.int32)
+    return run
+
+
+def _run_lsc(stack: npt.NDArray[np.float32], block: int, p: Params) -> Labels:
+    sp = cv2.ximgproc.createSuperpixelLSC(_to_u8(stack), block, float(p["ratio"]))
+    sp.iterate(10)
+    sp.enforceLabelConnectivity(25)
+    return np.asarray(sp.getLabels(), np.int32)
+
+
+def _grid(**axes: Sequence[float | int]) -> list[Params]:
+    keys = list(axes)
+    return [dict(zip(keys, vals, strict=True)) for vals in itertools.product(*axes.values())]
+
+
+def parameter_grids(quick: bool = False) -> dict[str, list[Params]]:
+    """The parameter sets tried per algorithm (a small grid each; ``quick`` shrinks it)."""
+    if quick:
+        return {"SEVDS": _grid(gamma=[0.0, 0.05], bins=[5]),
+                "SEVDS-E": _grid(gamma=[0.0, 0.05], bins=[5]),
+                "SEEDS": _grid(levels=[3], prior=[2], bins=[5]),
+                "SLIC": _grid(ruler=[10.0]), "SLICO": _grid(ruler=[10.0]),
+                "LSC": _grid(ratio=[0.075])}
+    return {"SEVDS": _grid(gamma=[0.0, 0.01, 0.05, 0.2], bins=[5, 10]),
+            "SEVDS-E": _grid(gamma=[0.0, 0.01, 0.05, 0.2], bins=[5, 10]),
+            "SEEDS": _grid(levels=[3, 4], prior=[0, 2, 5], bins=[5]),
+            "SLIC": _grid(ruler=[5.0, 10.0, 20.0, 40.0]), "SLICO": _grid(ruler=[10.0]),
+            "LSC": _grid(ratio=[0.025, 0.075, 0.15])}
+
+
+RUNNERS: dict[str, Callable[[npt.NDArray[np.float32], int, Params], Labels]] = {
+    "SEVDS": _run_sevds("distribution"),
+    "SEVDS-E": _run_sevds("energy"),
+    "SEEDS": _run_seeds,
+    "SLIC": _run_slic(cv2.ximgproc.SLIC),
+    "SLICO": _run_slic(cv2.ximgproc.SLICO),
+    "LSC": _run_lsc,
+}
+
+
+# --------------------------------------------------------------------------- tuning
+
+
+class _Progress:
+    """A plain ``\\r`` progress line on stderr (no tqdm dependency)."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total, self.done, self.enabled, self.t0 = max(1, total), 0, enabled, time.time()
+
+    def step(self, what: str) -> None:
+        self.done += 1
+        if self.enabled:
+            pct = 100.0 * self.done / self.total
+            sys.stderr.write(f"\r[eval supercells] {pct:5.1f}% {time.time() - self.t0:6.1f}s "
+                             f"{what:<40.40}")
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def _objective(labels: Labels, scene: Scene) -> float:
+    """Stutz et al.'s tuning target ``(1 - BR) + UE`` on the ground-truth segments."""
+    seg = scene.segments
+    return (1.0 - metrics.boundary_recall(labels, seg)) + metrics.undersegmentation_error(
+        labels, seg)
+
+
+def _tune(alg: str, block: int, scenes: Sequence[Scene], grid: list[Params],
+          progress: _Progress) -> tuple[Params, list[Labels]]:
+    """The parameter set with the lowest scene-mean objective, and its label images."""
+    best: tuple[float, Params, list[Labels]] | None = None
+    for p in grid:
+        labels = [RUNNERS[alg](s.stack, block, p) for s in scenes]
+        score = float(np.mean([_objective(lab, s) for lab, s in zip(labels, scenes,
+                                                                    strict=True)]))
+        progress.step(f"{alg} block {block} {p}")
+        if best is None or score < best[0]:
+            best = (score, p, labels)
+    assert best is not None
+    return best[1], best[2]
+
+
+def _rows_for(alg: str, block: int, params: Params, labels: list[Labels],
+              scenes: Sequence[Scene]) -> Iterator[dict[str, Any]]:
+    for lab, scene in zip(labels, scenes, strict=True):
+        m = metrics.all_metrics(lab, scene.stack, scene.classes, scene.segments)
+        yield {"algorithm": alg, "scene": scene.name, "block": block,
+               "superpixels": len(np.unique(lab)),
+               "params": " ".join(f"{k}={v}" for k, v in params.items()), **m}
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _mean_over(rows: list[dict[str, Any]], key: str) -> dict[str, dict[str, float]]:
+    """``{algorithm: {metric: mean}}`` over the rows grouped by ``key`` value, flattened."""
+    out: dict[str, dict[str, float]] = {}
+    for alg in dict.fromkeys(r["algorithm"] for r in rows):
+        sel = [r for r in rows if r["algorithm"] == alg]
+        out[alg] = {m: float(np.mean([r[m] for r in sel])) for m in (*METRICS, key)}
+    return out
+
+
+def markdown_tables(rows: list[dict[str, Any]], reference_block: int) -> str:
+    """Markdown: every algorithm and scene at the reference count, then means over counts."""
+    head = "| algorithm | scene | superpixels | pureness | ICV | EV | UE | BR |\n" \
+           "|---|---|---:|---:|---:|---:|---:|---:|\n"
+
+    def line(alg: str, scene: str, r: dict[str, Any]) -> str:
+        return (f"| {alg} | {scene} | {r['superpixels']:.0f} | {r['pureness']:.4f} | "
+                f"{r['icv']:.5f} | {r['ev']:.4f} | {r['ue']:.4f} | {r['br']:.4f} |\n")
+
+    ref = [r for r in rows if r["block"] == reference_block]
+    text = f"### Block edge {reference_block} cells (the paper's rule of thumb)\n\n" + head
+    for r in ref:
+        text += line(r["algorithm"], r["scene"], r)
+    for alg, m in _mean_over(ref, "superpixels").items():
+        text += line(f"**{alg}**", "mean", m)
+    blocks = sorted({int(r["block"]) for r in rows})
+    text += f"\n### Mean over all scenes and block edges {blocks}\n\n" + head
+    for alg, m in _mean_over(rows, "superpixels").items():
+        text += line(alg, "all", m)
+    return text
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+COLOURS: tuple[tuple[int, int, int], ...] = (
+    (40, 40, 220), (30, 150, 30), (200, 120, 20), (0, 170, 230), (170, 60, 170), (90, 90, 90))
+
+
+def _nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
+    """Round tick values covering ``[lo, hi]``."""
+    span = hi - lo if hi > lo else max(abs(hi), 1.0)
+    raw = span / n
+    mag = 10 ** np.floor(np.log10(raw))
+    step = float(min((s * mag for s in (1, 2, 2.5, 5, 10) if s * mag >= 0.999 * raw), default=raw))
+    start = np.floor(lo / step) * step
+    return [float(t) for t in np.arange(start, hi + step * 0.5, step) if lo - 1e-12 <= t]
+
+
+def line_plot(series: Mapping[str, tuple[Sequence[float], Sequence[float]]], title: str,
+              xlabel: str, ylabel: str, size: tuple[int, int] = (720, 460)) -> npt.NDArray:
+    """A simple line chart (axes, ticks, markers, legend) as a BGR image, drawn with OpenCV."""
+    w, h = size
+    img = np.full((h, w, 3), 255, np.uint8)
+    left, right, top, bottom = 80, 170, 40, 60
+    xs = np.concatenate([np.asarray(x, float) for x, _ in series.values()])
+    ys = np.concatenate([np.asarray(y, float) for _, y in series.values()])
+    x0, x1 = float(xs.min()), float(xs.max())
+    y0, y1 = float(ys.min()), float(ys.max())
+    pad = 0.05 * (y1 - y0 if y1 > y0 else max(abs(y1), 1e-3))
+    y0, y1 = y0 - pad, y1 + pad
+    x1 = x1 if x1 > x0 else x0 + 1.0
+
+    def px(x: float, y: float) -> tuple[int, int]:
+        return (round(left + (x - x0) / (x1 - x0) * (w - left - right)),
+                round(h - bottom - (y - y0) / (y1 - y0) * (h - top - bottom)))
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.rectangle(img, (left, top), (w - right, h - bottom), (0, 0, 0), 1)
+    for t in _nice_ticks(y0, y1):
+        if y0 <= t <= y1:
+            p = px(x0, t)
+            cv2.line(img, (left - 5, p[1]), (w - right, p[1]), (225, 225, 225), 1)
+            cv2.line(img, (left - 5, p[1]), (left, p[1]), (0, 0, 0), 1)
+            cv2.putText(img, f"{t:.4g}", (5, p[1] + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for t in _nice_ticks(x0, x1, 6):
+        if x0 <= t <= x1:
+            p = px(t, y0)
+            cv2.line(img, (p[0], h - bottom), (p[0], h - bottom + 5), (0, 0, 0), 1)
+            cv2.putText(img, f"{t:.4g}", (p[0] - 14, h - bottom + 20), font, 0.4, (0, 0, 0), 1,
+                        cv2.LINE_AA)
+    cv2.putText(img, title, (left, 25), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, xlabel, ((w - right + left) // 2 - 60, h - 15), font, 0.45, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    cv2.putText(img, ylabel, (5, top - 8), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for k, (name, (x, y)) in enumerate(series.items()):
+        colour = COLOURS[k % len(COLOURS)]
+        pts = [px(float(a), float(b)) for a, b in zip(x, y, strict=True)]
+        for p, q in itertools.pairwise(pts):
+            cv2.line(img, p, q, colour, 2, cv2.LINE_AA)
+        for p in pts:
+            cv2.circle(img, p, 4, colour, -1, cv2.LINE_AA)
+        ly = top + 20 + 22 * k
+        cv2.line(img, (w - right + 15, ly), (w - right + 45, ly), colour, 2, cv2.LINE_AA)
+        cv2.putText(img, name, (w - right + 52, ly + 5), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def metric_plots(rows: list[dict[str, Any]], out_dir: Path) -> list[Path]:
+    """One PNG per metric: scene-mean value over the mean number of superpixels (Fig. 12-16)."""
+    files = []
+    for m in METRICS:
+        series: dict[str, tuple[list[float], list[float]]] = {}
+        for alg in dict.fromkeys(r["algorithm"] for r in rows):
+            sel = [r for r in rows if r["algorithm"] == alg]
+            blocks = sorted({r["block"] for r in sel}, reverse=True)
+            xs = [float(np.mean([r["superpixels"] for r in sel if r["block"] == b]))
+                  for b in blocks]
+            ys = [float(np.mean([r[m] for r in sel if r["block"] == b])) for b in blocks]
+            series[alg] = (xs, ys)
+        path = out_dir / f"{m}.png"
+        cv2.imwrite(str(path), line_plot(series, METRIC_TITLES[m], "number of superpixels", m))
+        files.append(path)
+    return files
+
+
+def _composite(stack: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
+    """The first three layers as a BGR picture (layer 0 -> red, 1 -> green, 2 -> blue)."""
+    rgb = np.zeros((*stack.shape[1:], 3), np.float32)
+    k = min(3, stack.shape[0])
+    rgb[..., :k] = stack[:k].transpose(1, 2, 0)
+    return np.ascontiguousarray(np.rint(rgb[..., ::-1] * 255).astype(np.uint8))
+
+
+def _majority_image(labels: Labels, classes: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """Each superpixel painted with the grey of its majority ground-truth class (Fig. 11 top)."""
+    s, ns = np.unique(labels, return_inverse=True)
+    nc = int(classes.max()) + 1
+    table = np.bincount(ns.ravel() * nc + classes.ravel(), minlength=s.size * nc)
+    major = table.reshape(s.size, nc).argmax(axis=1)
+    grey = np.linspace(40, 230, nc).astype(np.uint8)
+    return np.repeat(grey[major[ns.reshape(labels.shape)]][..., None], 3, axis=2)
+
+
+def segmentation_figure(scene: Scene, labelled: dict[str, Labels]) -> npt.NDArray[np.uint8]:
+    """Paper Fig. 11: per algorithm, class-majority colouring (top) and red boundaries (bottom);
+    the first column shows the ground truth and the SOGM composite."""
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    h, w = scene.classes.shape
+    grey = np.linspace(40, 230, len(scene.class_names)).astype(np.uint8)
+    tops = [np.repeat(grey[scene.classes][..., None], 3, axis=2)]
+    bottoms = [_composite(scene.stack)]
+    names = ["ground truth"]
+    for name, lab in labelled.items():
+        tops.append(_majority_image(lab, scene.classes))
+        edge = _composite(scene.stack)
+        edge[metrics.boundary_map(lab)] = (0, 0, 255)
+        bottoms.append(edge)
+        names.append(name)
+    gap = np.full((h, 6, 3), 255, np.uint8)
+    rows = [np.hstack([x for t in tops for x in (t, gap)][:-1]),
+            np.hstack([x for b in bottoms for x in (b, gap)][:-1])]
+    band = np.full((26, rows[0].shape[1], 3), 255, np.uint8)
+    for k, name in enumerate(names):
+        cv2.putText(band, name, (k * (w + 6) + 4, 18), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([band, rows[0], np.full((6, rows[0].shape[1], 3), 255, np.uint8), rows[1]])
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def run_supercell_evaluation(
+    out_dir: str | Path,
+    *,
+    scenes: int = 4,
+    seed: int = 0,
+    quick: bool = False,
+    progress: bool = True,
+    scene_factory: Callable[[int], Scene] | None = None,
+    blocks: Sequence[int] | None = None,
+) -> EvaluationResult:
+    """Run the evaluation of section IV and write its tables and figures into ``out_dir``.
+
+    ``scene_factory(seed) -> Scene`` defaults to :func:`tabletop_scene` (the simulator);
+    ``blocks`` (block edges, i.e. superpixel counts) defaults to ``8, 12, ..., 32``
+    (``8, 16, 32`` with ``quick``, which also shrinks the parameter grids).
+    """
+    t0 = time.time()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    make = scene_factory or tabletop_scene
+    edges = tuple(blocks or (BLOCKS_QUICK if quick else BLOCKS_FULL))
+    grids = parameter_grids(quick)
+    total = scenes + sum(len(g) for g in grids.values()) * len(edges)
+    bar = _Progress(total, progress)
+    scene_list = []
+    for k in range(scenes):
+        scene_list.append(make(seed + k))
+        bar.step(f"mapped {scene_list[-1].name}")
+    rows: list[dict[str, Any]] = []
+    chosen: dict[tuple[str, int], Params] = {}
+    figure_block = REFERENCE_BLOCK if REFERENCE_BLOCK in edges else edges[0]
+    shown: dict[str, Labels] = {}
+    for alg in ALGORITHMS:
+        for block in edges:
+            params, labels = _tune(alg, block, scene_list, grids[alg], bar)
+            chosen[(alg, block)] = params
+            rows.extend(_rows_for(alg, block, params, labels, scene_list))
+            if block == figure_block:
+                shown[alg] = labels[-1]
+    bar.close()
+    files = [out / "results.csv", out / "results.md", out / "segmentations.png"]
+    write_csv(files[0], rows)
+    text = markdown_tables(rows, figure_block)
+    files[1].write_text(f"# SEVDS evaluation ({scenes} scenes, seed {seed})\n\n{text}")
+    cv2.imwrite(str(files[2]), segmentation_figure(scene_list[-1], shown))
+    files += metric_plots(rows, out)
+    return EvaluationResult(out, rows, text, files, chosen, time.time() - t0)
+
+
+def _add_supercells_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("eval-supercells"),
+                   help="output folder (default %(default)s)")
+    p.add_argument("--scenes", type=int, default=4, help="number of scenes (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first scene (default 0)")
+    p.add_argument("--quick", action="store_true",
+                   help="3 superpixel counts and minimal parameter grids")
+
+
+def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``eval supercells`` on the top-level ``sogm-service`` subparsers."""
+    ev = subparsers.add_parser("eval", help="the paper's evaluation")
+    sub = ev.add_subparsers(dest="eval_what", required=True)
+    _add_supercells_options(sub.add_parser(
+        "supercells", help="SEVDS vs SEEDS/SLIC/SLICO/LSC on simulated table-top SOGMs"))
+    return ev
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """Handler of ``eval supercells``: run, then print the markdown table and the files."""
+    if args.scenes < 1:
+        print("--scenes must be >= 1", file=sys.stderr)
+        return 2
+    result = run_supercell_evaluation(args.out, scenes=args.scenes, seed=args.seed,
+                                      quick=args.quick, progress=True)
+    print(result.markdown)
+    print(f"wrote {len(result.files)} files to {result.out_dir} in {result.seconds:.0f} s")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``sogm-service eval ...`` when the CLI delegates the rest of the command line here."""
+    parser = argparse.ArgumentParser(prog="sogm-service")
+    add_eval_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["eval", *(sys.argv[1:] if argv is None else argv)])
+    return run_eval(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
