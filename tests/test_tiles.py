@@ -278,3 +278,26 @@ def test_tiles_behave_like_one_big_grid(interp: str) -> None:
         # half a unit of rounding; a neighbour spread of at most 6000 units times 1/64 cell
         # of position rounding on each axis
         assert np.abs(got[inside] - ref[inside]).max() <= 1 + 6000 * 2 / 64
+
+
+def test_lattice_tile_of_matches_the_tile_areas() -> None:
+    lattice = TileLattice(0.05, 256)
+    span = 256 * 0.05
+    rng = np.random.default_rng(12)
+    for x, y in rng.uniform(-100, 100, (200, 2)):
+        i, j = lattice.tile_of(x, y)
+        assert i * span <= x < (i + 1) * span and j * span <= y < (j + 1) * span
+        u, v = lattice.tile_geometry(i, j).world_to_index([x, y])
+        assert 0 <= u < 256 and 0 <= v < 256
+    assert lattice.tile_of(-1e-9, 0.0) == (-1, 0)
+    with pytest.raises(ValueError):
+        TileLattice(0.05, 100)  # not a power of two
+
+
+def test_window_geometry_is_centred_on_its_pose() -> None:
+    for yaw in (0.0, 0.4, -2.5):
+        w = window_geometry(1.5, -2.0, yaw, 3.0, 2.0, 0.1)
+        assert (w.width, w.height) == (30, 20)
+        centre = w.origin.transform_points(np.array([1.5, 1.0]))
+        np.testing.assert_allclose(centre, [1.5, -2.0], atol=1e-12)
+        assert w.origin.yaw == yaw
