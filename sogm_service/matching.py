@@ -203,6 +203,26 @@ class MatchResult:
         """The top 2x3 of :attr:`matrix` (exact for the partial-affine model)."""
         return None if self.matrix is None else self.matrix[:2]
 
+    def summary(self) -> dict[str, object]:
+        """JSON-ready fields (plain floats and lists) for stats and a report-only publisher."""
+        c = self.correction
+        return {
+            "accepted": self.accepted, "reason": self.reason.value,
+            "correction": None if c is None else {
+                "dx": c.dx, "dy": c.dy, "dtheta": c.dtheta, "scale": c.scale},
+            "matrix": None if self.matrix is None else self.matrix.tolist(),
+            "n_features_ism": self.n_features_ism, "n_features_map": self.n_features_map,
+            "n_matches": self.n_matches, "inliers": self.inliers,
+            "score_before": _finite_or_none(self.score_before),
+            "score_after": _finite_or_none(self.score_after),
+            "elapsed_s": self.elapsed_s, **self.details,
+        }
+
+
+def _finite_or_none(x: float) -> float | None:
+    """NaN (no score) as ``None``: JSON and msgpack consumers need no NaN handling."""
+    return x if math.isfinite(x) else None
+
 
 # ---------------------------------------------------------------------------------------------
 # Step 1: rendering and the agreement score

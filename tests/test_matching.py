@@ -8,6 +8,7 @@ ISM's centre within 1 cell of the truth and its heading within 1 degree.
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 from dataclasses import dataclass, replace
@@ -538,3 +539,17 @@ def test_corrected_geometry_recovers_any_true_geometry(x: float, y: float, yaw: 
     # The shift is the claimed -> true displacement of the ISM's centre, in cells.
     assert corr.translation * 0.1 == pytest.approx(
         float(np.hypot(*(centre(truth) - centre(claimed)))), abs=1e-7)
+
+
+def test_summary_is_json_ready() -> None:
+    params = mt.MatchParams()
+    good = make_case(5, params).match(params)
+    assert good.correction is not None and good.matrix is not None
+    out = json.loads(json.dumps(good.summary(), allow_nan=False))
+    assert out["accepted"] is True and out["reason"] == "ok"
+    assert out["correction"]["dx"] == pytest.approx(good.correction.dx)
+    assert np.allclose(out["matrix"], good.matrix)
+    bad = mt.match_ism(np.zeros((ISM, ISM), np.int16), make_case(5, params).window, params)
+    out = json.loads(json.dumps(bad.summary(), allow_nan=False))
+    assert out["accepted"] is False and out["reason"] == "too_few_features"
+    assert out["correction"] is None and out["score_after"] is None
