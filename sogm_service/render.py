@@ -40,8 +40,8 @@ def dominant_class_image(stack: npt.NDArray, threshold: float = 0.5,
                          scale: int = 1) -> npt.NDArray[np.uint8]:
     """``(N, H, W)`` probabilities -> each cell coloured by its most likely layer.
 
-    Cells where no layer exceeds ``threshold`` are shown as unknown; the colour's brightness
-    follows the winning probability.
+    Cells where no layer exceeds ``threshold`` (with one u8 code of margin, because prob_u8
+    cannot encode 0.5 exactly) are shown as unknown; the brightness follows the winner's p.
     """
     stack = np.asarray(stack, dtype=np.float32)
     colors = class_colors(stack.shape[0]).astype(np.float32)
@@ -49,7 +49,7 @@ def dominant_class_image(stack: npt.NDArray, threshold: float = 0.5,
     p = np.max(stack, axis=0)
     img = colors[best] * (0.4 + 0.6 * np.clip((p - threshold) / (1 - threshold), 0, 1))[..., None]
     out = img.astype(np.uint8)
-    out[p <= threshold] = UNKNOWN_BGR
+    out[p <= threshold + _UNKNOWN_TOL * 2] = UNKNOWN_BGR
     return _finish(out, scale)
 
 

@@ -109,8 +109,10 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               rate_hz: float = 4.0, seed: int = 0, odom_noise: float = 0.0,
               sensors: Sequence[Sensor] | None = None, realtime: bool = True,
               encoding: str = "occupancy_i8", ism_prefix: str = "ism", pose_prefix: str = "pose",
-              stop: threading.Event | None = None) -> FleetStats:
+              stop: threading.Event | None = None, speed: float = 1.0) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
+
+    ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
 
     ``realtime`` paces steps at ``rate_hz`` on the wall clock (a live demo); otherwise steps go
     out as fast as they are simulated (tests, bulk loading).  Stamps are wall-clock seconds of
@@ -130,7 +132,7 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
             if stop is not None and stop.is_set():
                 break
             if realtime:
-                _sleep_until(t_wall0 + step.stamp, stop)
+                _sleep_until(t_wall0 + step.stamp / speed, stop)
             links[step.robot].publish(step, t_epoch0 + step.stamp, stats)
             stats.steps += 1
     finally:

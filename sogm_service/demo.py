@@ -1,0 +1,345 @@
+"""``sogm-service demo``: a map server and a simulated fleet on 127.0.0.1, end to end.
+
+Everything a new user should see in their first minute: a server (in this process, with a tile
+store in the output folder), robots that each open their own Zenoh session and publish ISMs and
+poses like real clients, then the service queried like a client would, with pictures.
+
+Outputs (``--out``, default ``demo-out/``): ``layer_<name>.png`` per layer, ``classes.png``
+(each cell coloured by its most likely class), ``fused_bayes.png`` and ``fused_max.png``
+(Eq. 6), ``submap_<robot>.png`` (a rotated window around each robot at another resolution),
+``supercells.png`` (the SEVDS graph over the fused map), ``ground_truth.png``,
+``tile_events.log`` (one JSON event a line), ``tiles/`` (the tile store) and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+PNG_LAYER_LIMIT = 16
+
+
+@dataclass
+class DemoResult:
+    """What the demo measured (also written as ``summary.json``)."""
+
+    world: str
+    robots: int
+    duration_s: float
+    isms_published: int
+    isms_fused: int
+    isms_rejected: int
+    tile_switches: int
+    layers: list[str]
+    iou: dict[str, float]
+    submap_latency_ms: dict[str, float]
+    files: list[str] = field(default_factory=list)
+    supercells: int | None = None
+    wall_s: float = 0.0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sogm-service demo", description=__doc__.split("\n")[0])
+    p.add_argument("--world", choices=["warehouse", "tabletop"], default="warehouse")
+    p.add_argument("--tabletop", action="store_true", help="the paper's table-top scene")
+    p.add_argument("--robots", type=int, default=3)
+    p.add_argument("--duration", type=float, default=60.0, help="simulated seconds")
+    p.add_argument("--speed", type=float, default=3.0,
+                   help="simulated seconds per wall second (default %(default)s)")
+    p.add_argument("--rate", type=float, default=4.0, help="sensor rate per robot (Hz)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("demo-out"))
+    p.add_argument("--fast", action="store_true",
+                   help="do not pace the fleet in real time (as fast as the server fuses)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    world = "tabletop" if args.tabletop else args.world
+    result = run_demo(world=world, robots=args.robots, duration_s=args.duration,
+                      rate_hz=args.rate, seed=args.seed, out=args.out,
+                      realtime=not args.fast, speed=args.speed, progress=not args.quiet)
+    _print_summary(result, args.out)
+    return 0
+
+
+def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 60.0,
+             rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
+             realtime: bool = True, speed: float = 3.0, progress: bool = True) -> DemoResult:
+    """Run the whole demo; returns its summary (and writes every file into ``out``)."""
+    from sogm_service.client import MapClient
+    from sogm_service.server import MapServer
+    from sogm_service.sim import tabletop_world, warehouse_world
+    from sogm_service.zsession import free_tcp_endpoint
+
+    started = time.monotonic()
+    out.mkdir(parents=True, exist_ok=True)
+    w = tabletop_world(seed) if world == "tabletop" else warehouse_world(seed)
+    endpoint = free_tcp_endpoint()
+    server = MapServer(_config(w.geometry.resolution, endpoint, out)).start()
+    try:
+        with MapClient.connect(endpoint, map_name="demo", timeout=10.0) as client:
+            watcher = _FleetWatcher(client, out / "tile_events.log")
+            fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
+                           server, progress)
+            server.wait_idle(timeout=60.0)
+            result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out)
+            watcher.close()
+    finally:
+        server.stop()
+    result.wall_s = round(time.monotonic() - started, 2)
+    (out / "summary.json").write_text(json.dumps(result.__dict__, indent=2) + "\n")
+    return result
+
+
+def _config(resolution: float, endpoint: str, out: Path) -> Any:
+    from sogm_service.config import ServiceConfig
+
+    return ServiceConfig.model_validate({
+        "map": {"name": "demo", "resolution": resolution},
+        "storage": {"directory": str(out / "tiles"), "checkpoint_interval_s": 2.0},
+        "tiles": {"hysteresis_m": min(1.0, 64 * resolution)},
+        "zenoh": {"listen": [endpoint]},
+        "log_level": "warning",
+    })
+
+
+class _FleetWatcher:
+    """Follows robot poses and tile events like any other client of the service."""
+
+    def __init__(self, client: Any, events_path: Path) -> None:
+        from sogm_service import codec
+        from sogm_service.messages import PoseMessage
+
+        self.poses: dict[str, PoseMessage] = {}
+        self.events = 0
+        self._log = events_path.open("w", encoding="utf-8")
+        self._lock = threading.Lock()
+
+        def on_pose(sample: Any) -> None:
+            msg = codec.decode(PoseMessage, sample.payload.to_bytes())
+            with self._lock:
+                self.poses[str(sample.key_expr).rsplit("/", 1)[-1]] = msg
+
+        self._subs = [client.session.declare_subscriber("pose/**", on_pose),
+                      client.subscribe_tile_events(self._on_event)]
+
+    def _on_event(self, event: Any) -> None:
+        with self._lock:
+            self.events += 1
+            self._log.write(event.model_dump_json() + "\n")
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        self._log.close()
+
+
+def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: float,
+           seed: int, realtime: bool, speed: float, server: Any, progress: bool) -> Any:
+    """Run the fleet in a thread while a progress bar shows the server's view."""
+    from sogm_service.sim.fleet import run_fleet
+
+    box: dict[str, Any] = {}
+
+    def fleet() -> None:
+        box["stats"] = run_fleet(world, endpoint, robots=robots, duration_s=duration_s,
+                                 rate_hz=rate_hz, seed=seed, realtime=realtime, speed=speed)
+
+    thread = threading.Thread(target=fleet, name="demo-fleet")
+    t0 = time.monotonic()
+    wall = duration_s / speed if realtime else None
+    tty = sys.stderr.isatty()
+    last = -1.0
+    thread.start()
+    while thread.is_alive():
+        thread.join(0.25)
+        elapsed = time.monotonic() - t0
+        if progress and (tty or elapsed - last >= 5.0):
+            fused = server.stats.snapshot()[0].get("isms_fused", 0)
+            _progress_bar(elapsed, wall, fused, tty)
+            last = elapsed
+    if progress and tty:
+        print(file=sys.stderr)
+    if "stats" not in box:
+        raise RuntimeError("the simulated fleet failed; see the log above")
+    return box["stats"]
+
+
+def _progress_bar(elapsed: float, total: float | None, fused: int, tty: bool) -> None:
+    """One bar on a terminal (redrawn in place), a line every few seconds in a log."""
+    frac = min(1.0, elapsed / total) if total else 0.0
+    bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
+    of = f"/{total:.0f}" if total else ""
+    sys.stderr.write(f"{chr(13) if tty else ''}[{bar}] {frac * 100:3.0f}%  {elapsed:5.1f}{of} s"
+                     f"  ISMs fused: {fused}{'' if tty else chr(10)}")
+    sys.stderr.flush()
+
+
+def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet: Any,
+            world_name: str, robots: int, duration_s: float, out: Path) -> DemoResult:
+    files: list[str] = []
+    info = client.info()
+    layers = list(info.layers)
+    full = _world_window(world)
+    sub = client.submap(**full, encoding="prob_f32")
+    files += _write_layers(sub, out)
+    files += _write_fused(client, full, obstacle_layers(layers), out)
+    files.append(_write_png(out / "ground_truth.png", _ground_truth_image(world, layers)))
+    latency = _robot_submaps(client, watcher, world.geometry.resolution, out, files)
+    supercells = _write_supercells(client, world, out, files)
+    counters, rejected = server.stats.snapshot()
+    return DemoResult(
+        world=world_name, robots=robots, duration_s=duration_s, isms_published=fleet.isms,
+        isms_fused=counters.get("isms_fused", 0), isms_rejected=sum(rejected.values()),
+        tile_switches=watcher.events, layers=layers,
+        iou=class_iou(world, layers, sub.probabilities()), submap_latency_ms=latency,
+        files=sorted(files), supercells=supercells)
+
+
+def _world_window(world: Any) -> dict[str, Any]:
+    g = world.geometry
+    w, h = g.size_m
+    centre = g.cell_to_world()[:2] @ np.array([(g.width - 1) / 2, (g.height - 1) / 2, 1.0])
+    return dict(x=float(centre[0]), y=float(centre[1]), yaw=g.origin.yaw, width=w, height=h,
+                resolution=g.resolution)
+
+
+def class_iou(world: Any, layers: list[str], probs: npt.NDArray[np.float32]) -> dict[str, float]:
+    """Per layer: IoU of ``p > 0.5`` against the ground truth, over the cells it observed.
+
+    ``obstacle`` (the laser's layer) is compared with everything standing on the floor; a
+    camera class with the world's class of that name.  Unobserved cells (log-odds 0) are left
+    out: the fleet cannot be blamed for what it never saw.
+    """
+    out: dict[str, float] = {}
+    for k, layer in enumerate(layers):
+        name = layer.rsplit("/", 1)[-1]
+        if name == "obstacle":
+            truth = world.occupied
+        elif name in world.classes:
+            truth = world.mask(name)
+        else:
+            continue
+        p = probs[k]
+        seen = np.abs(p - 0.5) > 1e-3
+        pred = (p > 0.5) & seen
+        gt = truth & seen
+        union = np.count_nonzero(pred | gt)
+        out[layer] = round(float(np.count_nonzero(pred & gt) / union), 4) if union else 0.0
+    return out
+
+
+def _write_png(path: Path, img: npt.NDArray[np.uint8]) -> str:
+    import cv2
+
+    cv2.imwrite(str(path), img)
+    return path.name
+
+
+def _write_layers(sub: Any, out: Path) -> list[str]:
+    from sogm_service.render import dominant_class_image, probability_image
+
+    p = sub.probabilities()
+    files = [_write_png(out / f"layer_{layer.replace('/', '_')}.png", probability_image(p[k]))
+             for k, layer in enumerate(sub.layers[:PNG_LAYER_LIMIT])]
+    files.append(_write_png(out / "classes.png", dominant_class_image(p)))
+    return files
+
+
+def obstacle_layers(layers: list[str]) -> list[str]:
+    """The layers that say "something stands here" (all but free-space classes like floor)."""
+    return [n for n in layers if n.rsplit("/", 1)[-1] not in ("floor", "free")] or layers
+
+
+def _write_fused(client: Any, window: dict[str, Any], layers: list[str],
+                 out: Path) -> list[str]:
+    """Eq. 6 over the obstacle-like layers: P_B (same evidence from several sensors) and P_M."""
+    from sogm_service.render import probability_image
+
+    files = []
+    for method in ("bayes", "max"):
+        fused = client.fused(method=method, **window, layers=layers, encoding="prob_f32")
+        files.append(_write_png(out / f"fused_{method}.png",
+                                probability_image(fused.probabilities())))
+    return files
+
+
+def _ground_truth_image(world: Any, layers: list[str]) -> npt.NDArray[np.uint8]:
+    """Ground truth in the colours ``classes.png`` gives the same class (walls as obstacle)."""
+    from sogm_service.render import UNKNOWN_BGR, class_colors
+
+    palette = class_colors(len(layers))
+    names = [n.rsplit("/", 1)[-1] for n in layers]
+    colors = np.zeros((len(world.classes), 3), np.uint8)
+    for k, cls in enumerate(world.classes):
+        name = cls if cls in names else "obstacle"
+        colors[k] = palette[names.index(name)] if name in names else (90, 90, 90)
+    colors[0] = UNKNOWN_BGR
+    return np.ascontiguousarray(colors[world.labels][::-1])
+
+
+def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Path,
+                   files: list[str]) -> dict[str, float]:
+    """A rotated window around each robot at 2x the map's cell size; timed queries."""
+    from sogm_service.render import dominant_class_image
+
+    timings: list[float] = []
+    res = 2 * map_res
+    side = 256 * res
+    for robot, pose in sorted(watcher.poses.items()):
+        window = dict(x=pose.x, y=pose.y, yaw=pose.yaw, width=side, height=side, resolution=res)
+        for _ in range(10):
+            t0 = time.perf_counter()
+            sub = client.submap(**window, encoding="prob_u8")
+            timings.append(time.perf_counter() - t0)
+        files.append(_write_png(out / f"submap_{robot}.png",
+                                dominant_class_image(sub.probabilities(), scale=2)))
+    if not timings:
+        return {}
+    ms = np.array(timings) * 1e3
+    return {"count": len(ms), "p50": round(float(np.median(ms)), 3),
+            "p99": round(float(np.percentile(ms, 99)), 3)}
+
+
+def _write_supercells(client: Any, world: Any, out: Path, files: list[str]) -> int | None:
+    """The SEVDS graph over a window of the map, drawn over the fused map."""
+    try:
+        from sogm_service.supercell_service import draw_graph
+    except ImportError:
+        return None
+    g = world.geometry
+    res = g.resolution * (2 if g.width > 600 else 1)
+    window = _world_window(world)
+    window.update(width=min(window["width"], 256 * res), height=min(window["height"], 256 * res),
+                  resolution=res)
+    reply = client.supercells(**window, labels=True)
+    fused = client.fused(method="max", **window, encoding="prob_f32")
+    files.append(_write_png(out / "supercells.png", draw_graph(reply, fused, scale=3)))
+    return len(reply.nodes)
+
+
+def _print_summary(r: DemoResult, out: Path) -> None:
+    print(f"sogm-service demo: {r.world}, {r.robots} robots, {r.duration_s:.0f} s simulated, "
+          f"{r.wall_s:.1f} s wall")
+    print(f"  ISMs published {r.isms_published}, fused {r.isms_fused}, "
+          f"rejected {r.isms_rejected}; tile switches {r.tile_switches}")
+    print("  per-class IoU (observed cells): " +
+          ", ".join(f"{k} {v:.2f}" for k, v in r.iou.items()))
+    if r.submap_latency_ms:
+        print(f"  sub-map query latency: median {r.submap_latency_ms['p50']:.1f} ms, "
+              f"p99 {r.submap_latency_ms['p99']:.1f} ms")
+    if r.supercells is not None:
+        print(f"  supercells in the graph window: {r.supercells}")
+    print(f"  wrote {len(r.files)} files and summary.json to {out}/")

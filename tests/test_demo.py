@@ -1,0 +1,35 @@
+"""The embedded demo: a short headless run writes every promised file and maps well."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sogm_service.demo import run_demo
+
+pytestmark = pytest.mark.integration
+
+# Per-class IoU over observed cells that a short run must reach (measured: floor 0.98,
+# obstacle 0.8, shelf 0.6-0.7 for 20-60 simulated seconds).
+MIN_IOU = {"floor": 0.9, "obstacle": 0.6}
+
+
+def test_short_demo_writes_every_file_and_reaches_the_iou(tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    result = run_demo(world="warehouse", robots=2, duration_s=8.0, rate_hz=4.0, seed=1,
+                      out=out, speed=4.0, progress=False)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["isms_fused"] == summary["isms_published"] > 0
+    assert summary["isms_rejected"] == 0
+    assert summary["tile_switches"] >= 2  # each robot's first pose at least
+    for name in ["classes.png", "fused_bayes.png", "fused_max.png", "ground_truth.png",
+                 "submap_robot1.png", "submap_robot2.png", "tile_events.log",
+                 "layer_obstacle.png", "layer_floor.png"]:
+        assert (out / name).stat().st_size > 0, name
+    assert len((out / "tile_events.log").read_text().splitlines()) == summary["tile_switches"]
+    assert list((out / "tiles").glob("*.tile")), "the tile store was not flushed"
+    for layer, minimum in MIN_IOU.items():
+        assert result.iou[layer] > minimum, (layer, result.iou)
+    assert result.submap_latency_ms["p50"] > 0
