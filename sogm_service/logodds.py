@@ -25,6 +25,7 @@ from enum import StrEnum
 from functools import lru_cache
 from typing import Final
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -154,16 +155,28 @@ def increments(
     # Bring the codes to the encoding's own 8-bit dtype first: viewing a wider integer array
     # (e.g. numpy's default int64) as bytes would index the table with every byte of it.
     codes = np.ascontiguousarray(data, dtype=ENCODING_DTYPES[encoding]).view(np.uint8)
-    return increment_lut(encoding, eps0)[codes]
+    lut = increment_lut(encoding, eps0)
+    if codes.ndim == 2 and codes.size:
+        # Once per ISM cell: OpenCV's table lookup is ~3x faster than numpy's fancy indexing.
+        return np.asarray(cv2.LUT(codes, lut), dtype=DTYPE)
+    return lut[codes]
 
 
-def bayes_update(state: Fixed, inc: Fixed, limits: tuple[int, int]) -> None:
+def bayes_update(state: Fixed, inc: npt.NDArray, limits: tuple[int, int]) -> None:
     """Eq. 1 in log-odds, in place: ``state = clamp(state + inc)``.
 
-    ``state`` and ``inc`` are int16 arrays of one shape; ``limits`` from :func:`clamp_limits`.
+    ``state`` is int16, ``inc`` int16 or float32 (an interpolated patch: rounded half to even
+    while adding, in one pass) of the same shape; ``limits`` from :func:`clamp_limits`.
     Cells with ``inc == 0`` (unknown) are unchanged because they were already inside the clamp.
     """
-    np.add(state, inc, out=state)
+    if inc.dtype == np.float32:
+        # |state + inc| <= 32000: no saturation.  OpenCV writes views in place; anything it
+        # had to copy (odd strides) is copied back.
+        out = cv2.add(state, inc, dst=state, dtype=cv2.CV_16S)
+        if out is not state:
+            np.copyto(state, out)
+    else:
+        np.add(state, inc, out=state)
     np.clip(state, limits[0], limits[1], out=state)
 
 

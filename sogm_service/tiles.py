@@ -25,7 +25,12 @@ import numpy.typing as npt
 
 from sogm_service import logodds
 from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.resample import Interp, resample_logodds, resample_stack
+from sogm_service.resample import (
+    Interp,
+    informative,
+    resample_stack,
+    tile_patches,
+)
 
 TileIndex = tuple[int, int]
 Loader = Callable[[int, int], "tuple[list[str], npt.NDArray[np.int16], float] | None"]
@@ -181,21 +186,16 @@ class TiledMap:
 
         The increments are resampled into every tile the ISM overlaps (``interp``, outside the
         ISM -> 0, i.e. untouched) and added with the clamp.  Returns the tiles written.
+        Per-tile work is kept to the slice or warp and the add: the ISM's alignment and inverse
+        transform are worked out once (:func:`sogm_service.resample.tile_patches`).
         """
         lid = self.layer_id(layer, create=True)
         touched = []
-        for index in self.lattice.tiles_overlapping(geometry):
-            block = self._footprint(index, geometry)
-            if block is None:
-                continue
-            u0, v0, w, h = block
-            sub = self._tile_geometry(index).subgrid(u0, v0, w, h)
-            patch = _aligned_slice(inc, geometry, sub)
-            if patch is None:
-                patch = resample_logodds(inc, geometry, sub, interp)
+        for part in tile_patches(inc, geometry, self.lattice, interp):
+            index, (u0, v0, w, h), patch = part.index, part.block, part.patch
             tile = self.get_tile(index)
             if tile is None:
-                if not patch.any():
+                if not informative(patch):
                     continue  # an ISM of pure unknown creates no tile
                 tile = self.get_tile(index, create=True)
                 assert tile is not None
@@ -208,22 +208,6 @@ class TiledMap:
 
     def _tile_geometry(self, index: TileIndex) -> GridGeometry:
         return self.lattice.tile_geometry(*index)
-
-    def _footprint(self, index: TileIndex,
-                   geometry: GridGeometry) -> tuple[int, int, int, int] | None:
-        """Cell block ``(u0, v0, w, h)`` of tile ``index`` that ``geometry`` may cover."""
-        span, res = self.lattice.span, self.lattice.resolution
-        corners = geometry.corners()
-        u = (corners[:, 0] - index[0] * span) / res
-        v = (corners[:, 1] - index[1] * span) / res
-        t = self.tile_size
-        u0 = max(0, math.floor(u.min() + _ALIGN_TOL))
-        v0 = max(0, math.floor(v.min() + _ALIGN_TOL))
-        u1 = min(t, math.ceil(u.max() - _ALIGN_TOL))
-        v1 = min(t, math.ceil(v.max() - _ALIGN_TOL))
-        if u1 <= u0 or v1 <= v0:
-            return None
-        return u0, v0, u1 - u0, v1 - v0
 
     # -- reading --------------------------------------------------------------------------
     def mosaic(self, box: tuple[int, int, int, int],
@@ -302,20 +286,3 @@ def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:
 def _cell_offset(src: GridGeometry, dst: GridGeometry) -> tuple[int, int]:
     m = src.world_to_cell() @ dst.cell_to_world()
     return int(np.rint(m[0, 2])), int(np.rint(m[1, 2]))
-
-
-def _aligned_slice(inc: npt.NDArray[np.int16], src: GridGeometry,
-                   dst: GridGeometry) -> npt.NDArray[np.int16] | None:
-    """Fast path of :meth:`TiledMap.fuse`: a plain slice when no resampling is needed."""
-    if not _is_aligned(src, dst):
-        return None
-    du, dv = _cell_offset(src, dst)
-    if du >= 0 and dv >= 0 and du + dst.width <= src.width and dv + dst.height <= src.height:
-        return inc[dv:dv + dst.height, du:du + dst.width]  # a view: no copy on the hot path
-    out = np.zeros(dst.shape, dtype=np.int16)
-    u0, v0 = max(0, -du), max(0, -dv)
-    u1 = min(dst.width, src.width - du)
-    v1 = min(dst.height, src.height - dv)
-    if u1 > u0 and v1 > v0:
-        out[v0:v1, u0:u1] = inc[v0 + dv:v1 + dv, u0 + du:u1 + du]
-    return out
