@@ -1,0 +1,140 @@
+"""``sogm-service replay carmen FILE``: a recorded laser log replayed into a map server.
+
+Each FLASER scan of the log (with its corrected pose) becomes the ISM of a laser inverse sensor
+model (free along each beam, occupied at the hit, unknown beyond; :mod:`sogm_service.laser`)
+published on ``ism/<robot>/laser/obstacle`` with its pose on ``pose/<robot>``, exactly as a
+live robot would.  Without ``--connect`` the server is embedded (in this process, on
+127.0.0.1); the resulting map is written as a PNG (and optionally ``.npy``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+
+@dataclass
+class ReplayResult:
+    scans: int
+    isms_fused: int
+    malformed_lines: int
+    geometry: Any
+    probabilities: npt.NDArray[np.float32]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sogm-service replay", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="format", required=True)
+    c = sub.add_parser("carmen", help="a CARMEN log (FLASER lines, gzip or plain)")
+    c.add_argument("file", type=Path)
+    c.add_argument("--connect", default=None,
+                   help="endpoint of a running server (default: an embedded one)")
+    c.add_argument("--map", default="default", help="map name of that server")
+    c.add_argument("--resolution", type=float, default=0.05, help="ISM and map cell size (m)")
+    c.add_argument("--limit", type=int, default=None, help="replay at most this many scans")
+    c.add_argument("--speed", type=float, default=0.0,
+                   help="pace relative to the log's stamps (0: as fast as possible)")
+    c.add_argument("--robot", default="carmen")
+    c.add_argument("--png", type=Path, default=Path("carmen-map.png"))
+    c.add_argument("--npy", type=Path, default=None)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not args.file.exists():
+        print(f"sogm-service replay: no such file {args.file}", file=sys.stderr)
+        return 2
+    result = replay_carmen(args.file, endpoint=args.connect, map_name=args.map,
+                           resolution=args.resolution, limit=args.limit, speed=args.speed,
+                           robot=args.robot)
+    _write(result, args.png, args.npy)
+    g = result.geometry
+    print(f"replayed {result.scans} scans ({result.malformed_lines} malformed lines skipped); "
+          f"{result.isms_fused} ISMs fused; map {g.width}x{g.height} cells at {g.resolution} m")
+    print(f"wrote {args.png}" + (f" and {args.npy}" if args.npy else ""))
+    return 0
+
+
+def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "default",
+                  resolution: float = 0.05, limit: int | None = None, speed: float = 0.0,
+                  robot: str = "carmen") -> ReplayResult:
+    """Replay a log into the server at ``endpoint`` (or an embedded one); return the map."""
+    from sogm_service.carmen import CarmenStats, read_carmen
+
+    stats = CarmenStats()
+    scans = list(read_carmen(path, limit=limit, stats=stats))
+    if endpoint is not None:
+        return _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats)
+    from sogm_service.config import ServiceConfig
+    from sogm_service.server import MapServer
+    from sogm_service.zsession import free_tcp_endpoint
+
+    endpoint = free_tcp_endpoint()
+    config = ServiceConfig.model_validate({"map": {"name": map_name, "resolution": resolution},
+                                           "zenoh": {"listen": [endpoint]}})
+    server = MapServer(config).start()
+    try:
+        result = _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats)
+    finally:
+        server.stop()
+    return result
+
+
+def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: float,
+                 speed: float, robot: str, stats: Any) -> ReplayResult:
+    from sogm_service.client import MapClient
+    from sogm_service.sim.fleet import replay_scans
+
+    replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed)
+    with MapClient.connect(endpoint, map_name=map_name, timeout=30.0) as client:
+        fused = _wait_fused(client, len(scans))
+        layer = f"{robot}/laser/obstacle"
+        info = client.info()
+        if layer not in info.layers:
+            layer = info.layers[0]
+        window = _bounds_window(scans, resolution)
+        sub = client.submap(**window, layers=[layer], encoding="prob_f32")
+    return ReplayResult(len(scans), fused, stats.malformed, sub.geometry,
+                        sub.probabilities()[0])
+
+
+def _wait_fused(client: Any, n: int, timeout: float = 120.0) -> int:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while True:
+        c = client.stats().counters
+        done = c.get("isms_fused", 0) + c.get("isms_rejected", 0)
+        if done >= n or time.monotonic() > deadline:
+            return int(c.get("isms_fused", 0))
+        time.sleep(0.1)
+
+
+def _bounds_window(scans: list[Any], resolution: float, margin: float = 10.0) -> dict[str, Any]:
+    """An axis-aligned window around the trajectory plus ``margin`` metres (beam reach)."""
+    xy = np.array([[s.pose.x, s.pose.y] for s in scans]) if scans else np.zeros((1, 2))
+    lo = xy.min(axis=0) - margin
+    hi = xy.max(axis=0) + margin
+    centre = (lo + hi) / 2
+    size = np.ceil((hi - lo) / resolution) * resolution
+    return dict(x=float(centre[0]), y=float(centre[1]), yaw=0.0, width=float(size[0]),
+                height=float(size[1]), resolution=resolution, interp="nearest")
+
+
+def _write(result: ReplayResult, png: Path, npy: Path | None) -> None:
+    import cv2
+
+    from sogm_service.render import probability_image
+
+    scale = max(1, math.floor(800 / max(result.probabilities.shape)))
+    cv2.imwrite(str(png), probability_image(result.probabilities, scale=scale))
+    if npy is not None:
+        np.save(npy, result.probabilities)
