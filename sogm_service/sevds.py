@@ -240,13 +240,32 @@ def _dist_of(c: int, cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
 def _dist_with(c: int, i: int, j: int, sign: float, cnt: npt.NDArray[np.float64],
                s1: npt.NDArray[np.float64], s2: npt.NDArray[np.float64],
                uc: npt.NDArray[np.float64], um1: npt.NDArray[np.float64],
-               um2: npt.NDArray[np.float64]) -> float:
+               um2: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
+               centres: npt.NDArray[np.float64], s: int) -> float:
     """Eq. 10 of supercell c with unit (i, j) added (sign +1) or removed (sign -1)."""
-    inv = 1.0 / (cnt[c] + sign * uc[i, j])
+    inv = 1.0 / (cnt[c] + sign * _unit_count(uc, i, j, s))
     total = 0.0
     for n in range(s1.shape[1]):
-        total += _layer_var(inv, s1[c, n] + sign * um1[i, j, n], s2[c, n] + sign * um2[i, j, n])
+        x1, x2 = _unit_moment(um1, um2, q, centres, s, i, j, n)
+        total += _layer_var(inv, s1[c, n] + sign * x1, s2[c, n] + sign * x2)
     return total
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _unit_count(uc: npt.NDArray[np.float64], i: int, j: int, s: int) -> float:
+    return 1.0 if s == 1 else uc[i, j]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _unit_moment(um1: npt.NDArray[np.float64], um2: npt.NDArray[np.float64],
+                 q: npt.NDArray[np.uint8], centres: npt.NDArray[np.float64], s: int, i: int,
+                 j: int, n: int) -> tuple[float, float]:
+    """Sums of x and x^2 of unit (i, j) in layer n.  Single cells (s == 1) read them from their
+    bin index: building (H, W, N) moment arrays cost more than the sweeps (page faults)."""
+    if s == 1:
+        x = centres[q[i, j, n]]
+        return x, x * x
+    return um1[i, j, n], um2[i, j, n]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -274,17 +293,20 @@ def _apply_move(a: int, b: int, i: int, j: int, p_unit: float, e_a: float, e_b: 
                 s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
                 dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
                 uc: npt.NDArray[np.float64], um1: npt.NDArray[np.float64],
-                um2: npt.NDArray[np.float64], q: npt.NDArray[np.uint8], s: int) -> None:
+                um2: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
+                centres: npt.NDArray[np.float64], s: int) -> None:
     """Move unit (i, j) from a to b: counts, moments, histograms, perimeters, D'."""
     perim[a] += 2.0 * e_a - p_unit
     perim[b] += p_unit - 2.0 * e_b
-    cnt[a] -= uc[i, j]
-    cnt[b] += uc[i, j]
+    u = _unit_count(uc, i, j, s)
+    cnt[a] -= u
+    cnt[b] += u
     for n in range(s1.shape[1]):
-        s1[a, n] -= um1[i, j, n]
-        s2[a, n] -= um2[i, j, n]
-        s1[b, n] += um1[i, j, n]
-        s2[b, n] += um2[i, j, n]
+        x1, x2 = _unit_moment(um1, um2, q, centres, s, i, j, n)
+        s1[a, n] -= x1
+        s2[a, n] -= x2
+        s1[b, n] += x1
+        s2[b, n] += x2
     dval[a] = _dist_of(a, cnt, s1, s2)
     dval[b] = _dist_of(b, cnt, s1, s2)
     _move_hist(q, hist, s, i, j, a, b)
@@ -296,8 +318,8 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
            rh: npt.NDArray[np.float64], cw: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
            s: int, cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
            s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
-           dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32], gamma: float,
-           energy: bool, reverse: bool) -> int:
+           dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
+           centres: npt.NDArray[np.float64], gamma: float, energy: bool, reverse: bool) -> int:
     """One raster sweep of unit moves on the unit grid ``ul`` (units of ``s`` x ``s`` cells).
 
     Per supercell: count, sums of x and x^2 per layer, perimeter, D' and the K-bin histograms,
@@ -313,15 +335,16 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
             j = wu - 1 - jj if reverse else jj
             a = ul[i, j]
             p_unit, e_a = _neighbours(ul, i, j, rh, cw, nb_lab, nb_w)
-            if e_a == p_unit or cnt[a] <= uc[i, j]:
+            u = _unit_count(uc, i, j, s)
+            if e_a == p_unit or cnt[a] <= u:
                 continue  # interior unit, or the move would empty a
             # The best neighbouring supercell b to join (criteria in the module docstring).
             # Written out here, not in a helper: passing the state arrays to a function cost
             # several times the arithmetic (reference counting per call).
-            u = uc[i, j]
             lose = 0.0
             if energy:  # the loser's part of the energy change is the same for every b
-                lose = (cnt[a] - u) * _dist_with(a, i, j, -1.0, cnt, s1, s2, uc, um1, um2) \
+                lose = (cnt[a] - u) * _dist_with(a, i, j, -1.0, cnt, s1, s2, uc, um1, um2, q,
+                                                 centres, s) \
                     - cnt[a] * dval[a]
             best, b = -_EPS, -1
             for r in range(4):
@@ -329,7 +352,7 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
                 if c < 0 or c == a or _seen_before(nb_lab, r):
                     continue
                 e_c = _edges_to(c, nb_lab, nb_w)
-                d_new = _dist_with(c, i, j, 1.0, cnt, s1, s2, uc, um1, um2)
+                d_new = _dist_with(c, i, j, 1.0, cnt, s1, s2, uc, um1, um2, q, centres, s)
                 if energy:
                     # E = sum_c |c| H(c): |c| D'(c) is the sum of squared deviations.
                     sc = lose + (cnt[c] + u) * d_new - cnt[c] * dval[c] \
@@ -347,7 +370,7 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
             if not _removable(ul, i, j):
                 continue
             _apply_move(a, b, i, j, p_unit, e_a, _edges_to(b, nb_lab, nb_w), cnt, s1, s2,
-                        perim, dval, hist, uc, um1, um2, q, s)
+                        perim, dval, hist, uc, um1, um2, q, centres, s)
             ul[i, j] = b
             moves += 1
     return moves
@@ -387,14 +410,16 @@ def _unit_moments(q: npt.NDArray[np.uint8], centres: npt.NDArray[np.float64], s:
     uc = np.zeros((hu, wu))
     m1 = np.zeros((hu, wu, nl))
     m2 = np.zeros((hu, wu, nl))
-    for v in range(h):
-        for u in range(w):
-            i, j = v // s, u // s
-            uc[i, j] += 1.0
-            for n in range(nl):
-                x = centres[q[v, u, n]]
-                m1[i, j, n] += x
-                m2[i, j, n] += x * x
+    # Loop units, then their cells: no integer division per cell (it dominated this loop).
+    for i in range(hu):
+        for j in range(wu):
+            for v in range(i * s, min(h, (i + 1) * s)):
+                for u in range(j * s, min(w, (j + 1) * s)):
+                    uc[i, j] += 1.0
+                    for n in range(nl):
+                        x = centres[q[v, u, n]]
+                        m1[i, j, n] += x
+                        m2[i, j, n] += x * x
     return uc, m1, m2
 
 
@@ -479,12 +504,15 @@ def sevds(stack: npt.ArrayLike, params: SevdsParams | None = None) -> SevdsResul
     for s, sweeps in schedule:
         hu, wu = -(-h // s), -(-w // s)
         ul = np.ascontiguousarray(labels[::s, ::s])  # blocks nest: each is one label
-        uc, m1, m2 = _unit_moments(qt, centres, s, hu, wu)
+        if s > 1:
+            uc, m1, m2 = _unit_moments(qt, centres, s, hu, wu)
+        else:  # single cells take their moments from their bin index (_unit_moment)
+            uc, m1, m2 = np.ones((1, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1))
         rh = np.minimum(s, h - s * np.arange(hu)).astype(np.float64)
         cw = np.minimum(s, w - s * np.arange(wu)).astype(np.float64)
         for sweep in range(sweeps):
             moves += _sweep(ul, uc, m1, m2, rh, cw, qt, s, cnt, s1, s2, perim, dval, hist,
-                            float(p.gamma), energy, sweep % 2 == 1)
+                            centres, float(p.gamma), energy, sweep % 2 == 1)
         labels = np.repeat(np.repeat(ul, s, axis=0), s, axis=1)[:h, :w]
     return SevdsResult(np.ascontiguousarray(labels, dtype=np.int32), hist, moves)
 
