@@ -73,6 +73,7 @@ class StorageSettings(_Section):
 
 class LimitSettings(_Section):
     max_ism_cells: Annotated[int, Field(gt=0)] = 4096 * 4096
+    max_ism_tiles: Annotated[int, Field(gt=0)] = 1024
     max_payload_bytes: Annotated[int, Field(gt=0)] = 128 * 1024 * 1024
     max_query_cells: Annotated[int, Field(gt=0)] = 4096 * 4096
     queue_size: Annotated[int, Field(ge=1, le=100000)] = 64

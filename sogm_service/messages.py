@@ -44,6 +44,9 @@ FusionMethod = Literal["bayes", "max"]
 StrictInt = Annotated[int, Strict()]
 StrictStr = Annotated[str, Strict()]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+# Robots' messages are typed strictly: true is not 1.0 m and "0.05" is not a number.
+WireFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+StrictBytes = Annotated[bytes, Strict()]
 
 DEFAULT_MAX_ISM_CELLS = 4096 * 4096
 
@@ -86,9 +89,9 @@ class WireArray(WireModel):
 class PoseModel(WireModel):
     """A planar pose (m, rad) in the message's frame."""
 
-    x: FiniteFloat = 0.0
-    y: FiniteFloat = 0.0
-    yaw: FiniteFloat = 0.0
+    x: WireFloat = 0.0
+    y: WireFloat = 0.0
+    yaw: WireFloat = 0.0
 
 
 class GeodeticFix(WireModel):
@@ -109,14 +112,14 @@ class IsmMessage(WireModel):
     schema_name: ClassVar[str] = "ism"
     layer: StrictStr | None = None
     frame: StrictStr = "map"
-    stamp: FiniteFloat = 0.0
+    stamp: WireFloat = 0.0
     robot: StrictStr | None = None
-    resolution: float
+    resolution: Annotated[float, Strict()]
     origin: PoseModel = PoseModel()
     width: StrictInt
     height: StrictInt
     encoding: IsmEncoding
-    data: bytes
+    data: StrictBytes
 
     @field_validator("resolution")
     @classmethod
@@ -180,10 +183,10 @@ class PoseMessage(WireModel):
     schema_name: ClassVar[str] = "pose"
     robot: StrictStr | None = None
     frame: StrictStr = "map"
-    stamp: FiniteFloat = 0.0
-    x: FiniteFloat
-    y: FiniteFloat
-    yaw: FiniteFloat = 0.0
+    stamp: WireFloat = 0.0
+    x: WireFloat
+    y: WireFloat
+    yaw: WireFloat = 0.0
     fix: GeodeticFix | None = None
 
 
@@ -313,6 +316,33 @@ class TileEvent(WireModel):
     stamp: float
 
 
+class MatchReport(WireModel):
+    """The outcome of scan matching one ISM (paper section III-C.2), for localisation stacks.
+
+    ``correction`` takes the claimed ISM origin to the matched one, in the map frame; it is
+    published whether or not the server fused the corrected ISM (``mode``).
+    """
+
+    schema_name: ClassVar[str] = "match_report"
+    map: str
+    key: str
+    layer: str
+    robot: str | None
+    stamp: float
+    mode: Literal["correct", "report"]
+    accepted: bool
+    reason: str
+    claimed: PoseModel
+    corrected: PoseModel | None
+    dx_m: float | None
+    dy_m: float | None
+    dyaw_rad: float | None
+    inliers: int
+    score_before: float | None
+    score_after: float | None
+    elapsed_ms: float
+
+
 class RobotTilesReply(WireModel):
     """Each robot's current tile (its last tile-switch event): what a late joiner needs."""
 
@@ -360,5 +390,6 @@ class ErrorReply(WireModel):
 
 SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
     IsmMessage, PoseMessage, SubmapRequest, FusedRequest, SupercellRequest, GridReply,
-    FusedReply, SupercellReply, TileEvent, RobotTilesReply, InfoReply, StatsReply, ErrorReply,
+    FusedReply, SupercellReply, TileEvent, RobotTilesReply, MatchReport, InfoReply, StatsReply,
+    ErrorReply,
 )

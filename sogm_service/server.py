@@ -28,7 +28,8 @@ import zenoh
 from pydantic import BaseModel
 
 from sogm_service import codec, ingest, queries
-from sogm_service.config import IsmSource, ServiceConfig
+from sogm_service.config import ServiceConfig
+from sogm_service.matcher import Matcher
 from sogm_service.messages import (
     ErrorReply,
     FusedRequest,
@@ -130,6 +131,7 @@ class MapServer:
         self.stats = Stats()
         self.lock = threading.RLock()
         self.persistence = Persistence(config, self.stats)
+        self.matcher = Matcher(config, self.stats)
         self.map = TiledMap(config.map.name, config.map.frame, self.persistence.lattice,
                             config.map.eps0, loader=self.persistence.load)
         self._owns_session = session is None
@@ -154,6 +156,7 @@ class MapServer:
         if self._session is None:
             self._session = open_session(self.config.zenoh)
         self.server_id = str(self._session.info.zid())
+        self.matcher.attach(self._session)
         self._worker = threading.Thread(target=self._work, name="sogm-ingest", daemon=True)
         self._worker.start()
         self._declare()
@@ -237,7 +240,7 @@ class MapServer:
             msg = codec.decode(IsmMessage, item.payload,
                                context={"max_cells": self.config.limits.max_ism_cells})
             layer = ingest.layer_name(msg, item.key, source.key_expr)
-            self.fuse(msg, layer, source)
+            self.fuse(msg, item.key, layer, item.source)
         except (codec.DecodeError, ingest.IsmRejectedError) as exc:
             self._reject(str(getattr(exc, "code", "invalid")), f"{item.key}: {exc}")
             return
@@ -248,19 +251,20 @@ class MapServer:
         self.stats.fused()
         self.stats.latency("fuse", time.perf_counter() - started)
 
-    def fuse(self, msg: IsmMessage, layer: str, source: IsmSource) -> None:
-        """Fuse one validated ISM (hook point for scan matching)."""
-        geometry = self.correct_geometry(msg, layer, source)
+    def fuse(self, msg: IsmMessage, key: str, layer: str, source: int) -> None:
+        """Fuse one validated ISM: extent check, optional scan matching, Eq. 1."""
+        inc, geometry = ingest.prepare(self.map, msg)
+        ingest.check_extent(self.map, geometry, self.config.limits.max_ism_tiles)
+        if self.matcher.enabled(source):
+            inc, geometry = self.matcher.place(self.map, self.lock, msg, key, layer, source,
+                                               inc, geometry)
         with self.lock:
-            touched = ingest.fuse_ism(self.map, msg, layer, source.interp, geometry)
-        centre = ingest.ism_geometry(msg).cell_to_world()[:2] @ np.array(
-            [(msg.width - 1) / 2, (msg.height - 1) / 2, 1.0])
+            touched = self.map.fuse(layer, inc, geometry, self.config.ism[source].interp,
+                                    msg.stamp)
+        centre = geometry.cell_to_world()[:2] @ np.array(
+            [(geometry.width - 1) / 2, (geometry.height - 1) / 2, 1.0])
         self.persistence.touched(touched, msg.robot, (float(centre[0]), float(centre[1])),
                                  msg.stamp)
-
-    def correct_geometry(self, msg: IsmMessage, layer: str, source: IsmSource) -> Any:
-        """Scan matching hook: returns a corrected geometry or ``None`` (see matching)."""
-        return None
 
     def _reject(self, reason: str, text: str) -> None:
         self.stats.reject(reason)
@@ -338,6 +342,7 @@ class MapServer:
                 "resident_mb": round(self.map.resident_bytes() / 1e6, 3),
             }
         extra.update(self.persistence.stats_extra())
+        extra.update(self.matcher.stats_extra())
         return StatsReply(map=self.map.name, server_id=self.server_id,
                           uptime_s=time.monotonic() - self.stats.started, counters=counters,
                           rejected=rejected, queue_depth=self._queue.depth(),

@@ -243,3 +243,16 @@ def test_grid_reply_geometry_places_the_window(server: ServerProcess) -> None:
     centre = g.cell_to_world()[:2] @ np.array([14.5, 9.5, 1.0])
     np.testing.assert_allclose(centre, [2.0, -1.0], atol=1e-9)
     assert g.origin.yaw == pytest.approx(0.5)
+
+
+def test_ism_covering_absurd_ground_is_refused_before_any_tile_exists(
+        server: ServerProcess) -> None:
+    # Valid on the wire, but 100 m cells x 100 x 100 would create ~3.7 million tiles.
+    with server.client() as client:
+        client.publish_ism("ism/r/laser/obstacle", np.full((100, 100), 200, np.uint8),
+                           resolution=100.0)
+        wait_processed(client, 1)
+        stats = client.stats()
+        info = client.info()
+    assert stats.rejected == {"too_large": 1}
+    assert info.tiles == [] and info.layers == []
