@@ -178,11 +178,12 @@ def parameter_grids(quick: bool = False) -> dict[str, list[Params]]:
                 "SEEDS": _grid(levels=[3], prior=[2], bins=[5]),
                 "SLIC": _grid(ruler=[10.0]), "SLICO": _grid(ruler=[10.0]),
                 "LSC": _grid(ratio=[0.075])}
-    return {"SEVDS": _grid(gamma=[0.0, 0.01, 0.05, 0.2], bins=[5, 10]),
-            "SEVDS-E": _grid(gamma=[0.0, 0.01, 0.05, 0.2], bins=[5, 10]),
-            "SEEDS": _grid(levels=[3, 4], prior=[0, 2, 5], bins=[5]),
+    # SLICO adapts its compactness itself (the ruler is ignored), so it has nothing to tune.
+    return {"SEVDS": _grid(gamma=[0.0, 0.005, 0.02, 0.1], bins=[5, 10, 20]),
+            "SEVDS-E": _grid(gamma=[0.0, 0.01, 0.05, 0.2], bins=[5, 10, 20]),
+            "SEEDS": _grid(levels=[3, 4], prior=[0, 2, 5], bins=[3, 5, 8]),
             "SLIC": _grid(ruler=[5.0, 10.0, 20.0, 40.0]), "SLICO": _grid(ruler=[10.0]),
-            "LSC": _grid(ratio=[0.025, 0.075, 0.15])}
+            "LSC": _grid(ratio=[0.01, 0.025, 0.075, 0.15])}
 
 
 RUNNERS: dict[str, Callable[[npt.NDArray[np.float32], int, Params], Labels]] = {

@@ -44,6 +44,22 @@ same kind; it prefers compact supercells and breaks the ties of homogeneous regi
   receiving supercell together; ``|c| D'(c)`` is the supercell's sum of squared deviations, which
   is additive over cells (plain variances of sets of different size are not).
 
+How they behave (``sogm-service eval supercells``, :mod:`sogm_service.evaluation`): the paper's
+rule never lets a zero-variance receiver grow without the contour term (``D(c_hat) < 0`` is
+impossible), and because the loser is not judged a cell can go back and forth between two
+supercells; the sweeps simply stop after ``iterations``.  It gives the lowest intra-cluster
+variation.  The energy rule converges (every move lowers E) and follows object boundaries much
+better (boundary recall, undersegmentation, explained variation) at a higher ICV.  The
+zero-variance rule applies to both.
+
+Decisions where the paper is silent: the bin of ``p`` is ``floor(p * K)`` (1 goes to the last
+bin); the image border is not part of a perimeter; a block level is used only while the block
+edge halves exactly (so blocks nest and are single-label when their level runs); candidates are
+the supercells of the unit's 4-neighbours, the best one is taken; ties (change ``>= -1e-12``) do
+not move.  Speed: the sweeps are numba kernels (``cache=True``); 256x256 cells with 3 layers run
+in about 7 ms on this machine (OpenCV's SEEDS: about 9 ms), see
+:func:`benchmark_sevds_vs_seeds`.
+
 Pure numpy + numba (``cache=True``), no I/O.
 """
 
