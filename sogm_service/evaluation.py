@@ -229,6 +229,8 @@ def _objective(labels: Labels, scene: Scene) -> float:
 def _tune(alg: str, block: int, scenes: Sequence[Scene], grid: list[Params],
           progress: _Progress) -> tuple[Params, list[Labels]]:
     """The parameter set with the lowest scene-mean objective, and its label images."""
+    if not grid:
+        raise ValueError(f"empty parameter grid for {alg}")
     best: tuple[float, Params, list[Labels]] | None = None
     for p in grid:
         labels = [RUNNERS[alg](s.stack, block, p) for s in scenes]
@@ -237,7 +239,7 @@ def _tune(alg: str, block: int, scenes: Sequence[Scene], grid: list[Params],
         progress.step(f"{alg} block {block} {p}")
         if best is None or score < best[0]:
             best = (score, p, labels)
-    assert best is not None
+    assert best is not None  # the grid is not empty
     return best[1], best[2]
 
 
@@ -254,7 +256,7 @@ def _rows_for(alg: str, block: int, params: Params, labels: list[Labels],
 
 
 def _mean_over(rows: list[dict[str, Any]], key: str) -> dict[str, dict[str, float]]:
-    """``{algorithm: {metric: mean}}`` over the rows grouped by ``key`` value, flattened."""
+    """``{algorithm: {name: mean over its rows}}`` for the five metrics and ``key``."""
     out: dict[str, dict[str, float]] = {}
     for alg in dict.fromkeys(r["algorithm"] for r in rows):
         sel = [r for r in rows if r["algorithm"] == alg]
