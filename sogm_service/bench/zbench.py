@@ -22,10 +22,12 @@ from typing import Any
 
 import zenoh
 
+from sogm_service import ingest
 from sogm_service.bench.compute import MAP_RES, synthetic_ism
 from sogm_service.bench.core import Row, interleaved, median, percentile
 from sogm_service.client import MapClient
 from sogm_service.geometry import Pose2D
+from sogm_service.messages import StatsReply
 from sogm_service.zsession import free_tcp_endpoint, loopback_settings, open_session
 
 PY = sys.executable
@@ -182,10 +184,34 @@ def submap(quick: bool) -> Row:
                 MapClient.connect(raw_ep, timeout=10.0) as raw:
             ours, base = interleaved(lambda: client.submap(**WINDOW),
                                      lambda: raw.get_raw("bench/raw"), repeats, warmup=5)
-    return _submap_row(ours, base, size)
+    return _submap_row(ours, base, size, _submap_breakdown(10 if quick else 50))
 
 
-def _submap_row(ours: list[float], base: list[float], size: int) -> Row:
+def _submap_breakdown(repeats: int) -> dict[str, float]:
+    """The server's share, in this process on the same map: sampling (mosaic + warp), the
+    reply encoding (log-odds -> probability) and msgpack; median ms each."""
+    from sogm_service import codec, logodds, queries
+    from sogm_service.bench.compute import fresh_map, ism_message
+    from sogm_service.geometry import window_geometry
+    from sogm_service.messages import SubmapRequest
+
+    tiled = fresh_map()
+    for k in range(4):
+        msg = ism_message(synthetic_ism(512, k), MAP_RES, Pose2D(0.0, 0.0, 0.0))
+        ingest.fuse_ism(tiled, msg, f"bench/layer{k}")
+    req = queries.parse_request(SubmapRequest, {k: str(v) for k, v in WINDOW.items()})
+    window = window_geometry(req.x, req.y, req.yaw, req.width, req.height, MAP_RES)
+    stack = tiled.sample(window, tiled.layers, "biodds")
+    reply = queries.submap(tiled, req, 1 << 26, 0.0)
+    parts = {"sample_ms": lambda: tiled.sample(window, tiled.layers, "biodds"),
+             "encode_reply_ms": lambda: logodds.encode_fixed(stack, "prob_f32"),
+             "msgpack_ms": lambda: codec.encode(reply)}
+    return {k: median(interleaved(f, lambda: None, repeats)[0]) * 1e3
+            for k, f in parts.items()}
+
+
+def _submap_row(ours: list[float], base: list[float], size: int,
+                server: dict[str, float]) -> Row:
     m_o, m_b = median(ours) * 1e3, median(base) * 1e3
     p_o, p_b = percentile(ours, 99) * 1e3, percentile(base, 99) * 1e3
     ratio, p_ratio = m_o / m_b, p_o / p_b
@@ -193,9 +219,10 @@ def _submap_row(ours: list[float], base: list[float], size: int) -> Row:
                ratio <= 1.5 and p_ratio <= 3.0,
                f"raw Zenoh get of a prepared {size}-byte payload from another process",
                f"p99 {p_o:.2f} vs {p_b:.2f} ms = {p_ratio:.2f}x; rotated 0.5 rad, biodds, "
-               "prob_f32 reply, client decode included",
+               "prob_f32 reply (the client's default), client decode included; server work "
+               + ", ".join(f"{k.removesuffix('_ms')} {v:.2f} ms" for k, v in server.items()),
                {"p99_ms": p_o, "baseline_p99_ms": p_b, "p99_ratio": p_ratio,
-                "reply_bytes": float(size), "repeats": float(len(ours))})
+                "reply_bytes": float(size), "repeats": float(len(ours)), **server})
 
 
 # -- ingestion ----------------------------------------------------------------------------
@@ -204,28 +231,36 @@ def _rounds(pub: Proc, count: int, rounds: int,
     """Rates (ISMs/s) of ``rounds`` bursts; ``finish(k)`` returns the k-th burst's end time
     (wall clock, comparable with the publisher's across processes)."""
     rates = []
-    for k in range(1, rounds + 1):
+    for k in range(rounds + 1):
         pub.send("go")
         t_first = float(pub.expect("sent", 300.0)[0])
-        rates.append(count / (finish(k) - t_first))
+        rate = count / (finish(k + 1) - t_first)
+        if k:  # burst 0 warms up connections, caches and allocators
+            rates.append(rate)
     return rates
 
 
 def ingestion(quick: bool) -> Row:
-    count, rounds = (150, 2) if quick else (1500, 3)
+    count, rounds = (150, 2) if quick else (1500, 5)
     with tempfile.TemporaryDirectory(prefix="sogm-bench-") as tmp:
         d = Path(tmp)
         raw_rates = _raw_ingest(d, count, rounds)
-        ours_rates, counters = _server_ingest(d, count, rounds)
-    dropped = count * rounds - counters.get("isms_fused", 0)
+        ours_rates, stats = _server_ingest(d, count, rounds)
+    counters = stats.counters
+    sent = count * (rounds + 1)  # with the warm-up burst
+    dropped = sent - counters.get("isms_fused", 0)
     ours, base = median(ours_rates), median(raw_rates)
     ratio = ours / base
+    fuse_ms = stats.latency_ms.get("fuse", {})
     return Row("ingest_zenoh_256", ours, base, "ISM/s", ratio, ">= 0.5x, none dropped",
                ratio >= 0.5 and dropped == 0,
                "raw puts of the same payloads to a subscriber that only counts",
-               f"{count} ISMs x {rounds} bursts, any heading, biodds; dropped {dropped}, "
-               f"rejected {counters.get('isms_rejected', 0)}",
-               {"dropped": float(dropped), "count": float(count), "rounds": float(rounds)})
+               f"median of {rounds} bursts of {count} ISMs after a warm-up burst; any heading, "
+               f"biodds; not fused {dropped} (rejected {sum(stats.rejected.values())}); "
+               f"server decode+fuse p50 {fuse_ms.get('p50', 0.0):.2f} ms/ISM",
+               {"not_fused": float(dropped), "count": float(count), "rounds": float(rounds),
+                "server_fuse_p50_ms": fuse_ms.get("p50", 0.0),
+                "server_fuse_p99_ms": fuse_ms.get("p99", 0.0)})
 
 
 def _publisher(d: Path, endpoint: str, key: str, count: int) -> Proc:
@@ -247,22 +282,15 @@ def _raw_ingest(d: Path, count: int, rounds: int) -> list[float]:
             pub.stop()
 
 
-def _server_ingest(d: Path, count: int, rounds: int) -> tuple[list[float], dict[str, int]]:
-    counters: dict[str, int] = {}
-
-    def finish(k: int) -> float:
-        nonlocal counters
-        t, counters = wait_fused(client, k * count)
-        return t
-
+def _server_ingest(d: Path, count: int, rounds: int) -> tuple[list[float], StatsReply]:
     with map_server(d) as served:
         client = served.client
         pub = _publisher(d, served.endpoint, "ism/bench/obstacle", count)
         try:
-            rates = _rounds(pub, count, rounds, finish)
+            rates = _rounds(pub, count, rounds, lambda k: wait_fused(client, k * count)[0])
         finally:
             pub.stop()
-    return rates, counters
+        return rates, client.stats()
 
 
 # -- memory -------------------------------------------------------------------------------
