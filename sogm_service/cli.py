@@ -206,9 +206,7 @@ def _run_query(client: Any, args: argparse.Namespace) -> int:
         print(reply.model_dump_json(indent=2))
         return 0
     if args.what == "supercells":
-        from sogm_service.supercell_service import run_supercell_query
-
-        return run_supercell_query(client, args, _window(args))
+        return _run_supercells(client, args)
     if args.what == "submap":
         result = client.submap(**_window(args))
     else:
@@ -216,6 +214,48 @@ def _run_query(client: Any, args: argparse.Namespace) -> int:
     _print_grid(result)
     _write_grid_outputs(result, args.png, args.npy)
     return 0
+
+
+def _run_supercells(client: Any, args: argparse.Namespace) -> int:
+    window = _window(args)
+    reply = client.supercells(**window, block_size=args.block_size, levels=args.levels,
+                              bins=args.bins, iterations=args.iterations, gamma=args.gamma,
+                              criterion=args.criterion, labels=args.png is not None)
+    edges = sum(len(n.neighbors) for n in reply.nodes) // 2
+    print(f"supercells: {len(reply.nodes)} nodes, {edges} edges over {reply.width}x"
+          f"{reply.height} cells at {reply.resolution} m, layers {reply.layers}")
+    for node in reply.nodes[:5]:
+        print(f"  #{node.id}: ({node.x:.2f}, {node.y:.2f}) m, {node.area_m2:.2f} m2, "
+              f"mean P {[round(p, 2) for p in node.mean_probability]}")
+    if args.npy is not None:
+        import numpy as np
+
+        np.save(args.npy, np.array([[n.x, n.y, *n.mean_probability] for n in reply.nodes]))
+    if args.png is not None:
+        import cv2
+
+        window.pop("layers", None)
+        fused = client.fused(method="max", **window, layers=reply.layers, encoding="prob_f32")
+        cv2.imwrite(str(args.png), draw_graph(reply, fused))
+        print(f"wrote {args.png}")
+    return 0
+
+
+def draw_graph(reply: Any, fused: Any, scale: int = 3) -> Any:
+    """The supercell graph of a reply (with labels) over a fused map of the same window."""
+    import numpy as np
+
+    from sogm_service.render import supercell_overlay
+
+    g = fused.geometry
+    to_cell = g.world_to_cell()
+    xy = np.array([[n.x, n.y, 1.0] for n in reply.nodes]).reshape(-1, 3)
+    cells = (to_cell @ xy.T).T[:, :2]
+    edges = [(n.id, m) for n in reply.nodes for m in n.neighbors if n.id < m]
+    dominant = np.array([int(np.argmax(n.mean_probability))
+                         if max(n.mean_probability) > 0.51 else -1 for n in reply.nodes])
+    return supercell_overlay(fused.probabilities(), reply.labels.array(), cells, edges,
+                             dominant, len(reply.layers), scale)
 
 
 def _print_grid(result: Any) -> None:

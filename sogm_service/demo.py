@@ -198,7 +198,7 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
     files += _write_fused(client, full, obstacle_layers(layers), out)
     files.append(_write_png(out / "ground_truth.png", _ground_truth_image(world, layers)))
     latency = _robot_submaps(client, watcher, world.geometry.resolution, out, files)
-    supercells = _write_supercells(client, world, out, files)
+    supercells = _write_supercells(client, world, watcher, out, files)
     counters, rejected = server.stats.snapshot()
     return DemoResult(
         world=world_name, robots=robots, duration_s=duration_s, isms_published=fleet.isms,
@@ -313,16 +313,16 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
             "p99": round(float(np.percentile(ms, 99)), 3)}
 
 
-def _write_supercells(client: Any, world: Any, out: Path, files: list[str]) -> int | None:
-    """The SEVDS graph over a window of the map, drawn over the fused map."""
-    try:
-        from sogm_service.supercell_service import draw_graph
-    except ImportError:
+def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path,
+                      files: list[str]) -> int | None:
+    """The SEVDS graph of a 128 x 128 cell window around the first robot, over the fused map."""
+    from sogm_service.cli import draw_graph
+
+    if not watcher.poses:
         return None
-    g = world.geometry
-    res = g.resolution * (2 if g.width > 600 else 1)
-    window = _world_window(world)
-    window.update(width=min(window["width"], 256 * res), height=min(window["height"], 256 * res),
+    pose = watcher.poses[sorted(watcher.poses)[0]]
+    res = world.geometry.resolution
+    window = dict(x=pose.x, y=pose.y, yaw=0.0, width=128 * res, height=128 * res,
                   resolution=res)
     reply = client.supercells(**window, labels=True)
     fused = client.fused(method="max", **window, encoding="prob_f32")

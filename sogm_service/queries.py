@@ -23,6 +23,9 @@ from sogm_service.messages import (
     GridReply,
     PoseModel,
     SubmapRequest,
+    SupercellNode,
+    SupercellReply,
+    SupercellRequest,
     WindowRequest,
     WireArray,
 )
@@ -118,3 +121,49 @@ def fused(tiled: TiledMap, req: FusedRequest, limit_cells: int, stamp: float) ->
                       height=window.height, layers=layers, method=req.method,
                       encoding=req.encoding, interp=req.interp,
                       data=WireArray.from_array(data))
+
+
+def supercell_input(tiled: TiledMap, req: SupercellRequest, limit_cells: int
+                    ) -> tuple[GridGeometry, list[str], npt.NDArray[np.int16]]:
+    """The window, its layers and their log-odds: all the ``supercells`` query needs from the
+    map (the server holds its map lock only for this part, not for SEVDS)."""
+    layers = resolve_layers(tiled, req.layers)
+    if not layers:
+        raise QueryError("unknown_layer", "the map has no layers yet", "layers")
+    window = window_of(req, tiled, limit_cells, len(layers))
+    if min(window.width, window.height) < req.block_size:
+        raise QueryError("bad_parameter", f"the window ({window.width}x{window.height} cells) "
+                                          f"is smaller than one block ({req.block_size})",
+                         "block_size")
+    return window, layers, tiled.sample(window, layers, req.interp)
+
+
+def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry, layers: list[str],
+               stack: npt.NDArray[np.int16], stamp: float) -> SupercellReply:
+    """The ``supercells`` queryable: SEVDS (Eq. 7-10) on the window, as a topometric graph.
+
+    Each node is the paper's triple (T_c, L_c, P_c): centroid in the map frame, adjacent
+    supercells, and the Eq. 11 feature vector (summed log-odds per layer, plus mean P).
+    """
+    from sogm_service.sevds import SevdsParams  # numba: imported on first use, not at start
+    from sogm_service.supercells import extract_supercells
+
+    params = SevdsParams(block_size=req.block_size, levels=req.levels, bins=req.bins,
+                         iterations=req.iterations, gamma=req.gamma, criterion=req.criterion)
+    graph, _ = extract_supercells(stack, window, params, tiled.eps0)
+    neighbours: list[list[int]] = [[] for _ in range(graph.count)]
+    for a, b in graph.edges.tolist():
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    cell_area = window.resolution ** 2
+    nodes = [SupercellNode(id=k, x=float(graph.centroids[k, 0]), y=float(graph.centroids[k, 1]),
+                           area_cells=int(graph.areas[k]),
+                           area_m2=float(graph.areas[k]) * cell_area, neighbors=neighbours[k],
+                           logodds_sum=graph.logodds_sum[k].tolist(),
+                           mean_probability=graph.mean_probability[k].tolist())
+             for k in range(graph.count)]
+    labels = WireArray.from_array(graph.labels) if req.labels else None
+    return SupercellReply(map=tiled.name, frame=tiled.frame, stamp=stamp,
+                          resolution=window.resolution, origin=_pose(window),
+                          width=window.width, height=window.height, layers=layers,
+                          nodes=nodes, labels=labels)

@@ -58,3 +58,34 @@ def _finish(img: npt.NDArray[np.uint8], scale: int) -> npt.NDArray[np.uint8]:
     if scale > 1:
         img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
     return img
+
+
+def supercell_overlay(background: npt.NDArray, labels: npt.NDArray[np.int32],
+                      centroids_cell: npt.NDArray, edges: list[tuple[int, int]],
+                      dominant: npt.NDArray[np.int64], n_classes: int,
+                      scale: int = 3) -> npt.NDArray[np.uint8]:
+    """The topometric graph (paper Fig. 6) over a map picture.
+
+    ``background``: ``(H, W)`` probabilities; ``labels``: the supercell image; borders in red,
+    edges between adjacent supercells as lines, centroids as dots coloured by each supercell's
+    dominant layer (-1: no evidence, grey).  Returned with map y up, like every picture here.
+    """
+    import cv2
+
+    base = probability_image(background)[::-1]  # back to row 0 = v 0 for drawing
+    img = np.ascontiguousarray(np.repeat(np.repeat(base, scale, 0), scale, 1))
+    big = np.repeat(np.repeat(labels, scale, 0), scale, 1)
+    border = np.zeros(big.shape, bool)
+    border[:, 1:] |= big[:, 1:] != big[:, :-1]
+    border[1:, :] |= big[1:, :] != big[:-1, :]
+    img[border] = (40, 40, 220)
+    pts = ((np.asarray(centroids_cell, dtype=np.float64) + 0.5) * scale).astype(np.int32)
+    for a, b in edges:
+        cv2.line(img, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]),
+                 (60, 160, 60), 1, cv2.LINE_AA)
+    colors = class_colors(max(n_classes, 1))
+    for k, (u, v) in enumerate(pts):
+        d = int(dominant[k])
+        color = (128, 128, 128) if d < 0 else tuple(int(c) for c in colors[d])
+        cv2.circle(img, (int(u), int(v)), max(2, scale), color, -1, cv2.LINE_AA)
+    return np.ascontiguousarray(img[::-1])

@@ -38,6 +38,7 @@ from sogm_service.messages import (
     PoseMessage,
     StatsReply,
     SubmapRequest,
+    SupercellRequest,
 )
 from sogm_service.persistence import Persistence
 from sogm_service.stats import Stats
@@ -175,6 +176,7 @@ class MapServer:
             self._declared.append(s.declare_subscriber(key, self._on_pose))
         handlers: dict[str, Callable[[zenoh.Query], BaseModel | bytes | None]] = {
             "submap": self._on_submap, "fused": self._on_fused,
+            "supercells": self._on_supercells,
             "info": self._on_info, "stats": self._on_stats,
         }
         for name, handler in handlers.items():
@@ -319,6 +321,13 @@ class MapServer:
         req = queries.parse_request(FusedRequest, *self.params(q))
         with self.lock:
             return queries.fused(self.map, req, self.config.limits.max_query_cells, time.time())
+
+    def _on_supercells(self, q: zenoh.Query) -> BaseModel:
+        req = queries.parse_request(SupercellRequest, *self.params(q))
+        with self.lock:
+            window, layers, stack = queries.supercell_input(
+                self.map, req, self.config.limits.max_query_cells)
+        return queries.supercells(self.map, req, window, layers, stack, time.time())
 
     def info(self) -> InfoReply:
         with self.lock:

@@ -26,7 +26,7 @@ def test_short_demo_writes_every_file_and_reaches_the_iou(tmp_path: Path) -> Non
     assert summary["tile_switches"] >= 2  # each robot's first pose at least
     for name in ["classes.png", "fused_bayes.png", "fused_max.png", "ground_truth.png",
                  "submap_robot1.png", "submap_robot2.png", "tile_events.log",
-                 "layer_obstacle.png", "layer_floor.png"]:
+                 "layer_obstacle.png", "layer_floor.png", "supercells.png"]:
         assert (out / name).stat().st_size > 0, name
     assert len((out / "tile_events.log").read_text().splitlines()) == summary["tile_switches"]
     assert list((out / "tiles").glob("*.tile")), "the tile store was not flushed"
