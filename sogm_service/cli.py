@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
             q.add_argument("--levels", type=int, default=3)
             q.add_argument("--bins", type=int, default=5)
             q.add_argument("--iterations", type=int, default=4)
-            q.add_argument("--gamma", type=float, default=0.1)
+            q.add_argument("--gamma", type=float, default=0.01)
             q.add_argument("--criterion", default="distribution",
                            choices=["distribution", "energy"])
     for name in ("info", "stats"):

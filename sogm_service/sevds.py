@@ -91,7 +91,7 @@ class SevdsParams:
     levels: int = 3
     bins: int = 5
     iterations: int = 4
-    gamma: float = 0.1
+    gamma: float = 0.01
     criterion: Criterion = "distribution"
 
     def __post_init__(self) -> None:
