@@ -240,10 +240,9 @@ class SupercellRequest(WindowRequest):
     labels: bool = False
 
 
-class GridReply(WireModel):
-    """A sub-map: ``(N, H, W)`` cells of the named layers placed by ``origin``/``resolution``."""
+class WindowReply(WireModel):
+    """Where a reply's window lies: cells of ``resolution`` m from the corner ``origin``."""
 
-    schema_name: ClassVar[str] = "submap_reply"
     map: str
     frame: str
     stamp: float
@@ -252,23 +251,21 @@ class GridReply(WireModel):
     width: int
     height: int
     layers: list[str]
+
+
+class GridReply(WindowReply):
+    """A sub-map: ``(N, H, W)`` cells of the named layers."""
+
+    schema_name: ClassVar[str] = "submap_reply"
     encoding: OutputEncoding
     interp: InterpName
     data: WireArray
 
 
-class FusedReply(WireModel):
+class FusedReply(WindowReply):
     """One layer fused from several by Eq. 6 (``bayes``: P_B, ``max``: P_M)."""
 
     schema_name: ClassVar[str] = "fused_reply"
-    map: str
-    frame: str
-    stamp: float
-    resolution: float
-    origin: PoseModel
-    width: int
-    height: int
-    layers: list[str]
     method: FusionMethod
     encoding: OutputEncoding
     interp: InterpName
@@ -288,16 +285,10 @@ class SupercellNode(WireModel):
     mean_probability: list[float]
 
 
-class SupercellReply(WireModel):
+class SupercellReply(WindowReply):
+    """The topometric graph of a window (paper Fig. 6); the label image on request."""
+
     schema_name: ClassVar[str] = "supercell_reply"
-    map: str
-    frame: str
-    stamp: float
-    resolution: float
-    origin: PoseModel
-    width: int
-    height: int
-    layers: list[str]
     nodes: list[SupercellNode]
     labels: WireArray | None = None
 

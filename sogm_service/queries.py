@@ -85,8 +85,12 @@ def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[str]:
     return list(wanted)
 
 
-def _pose(g: GridGeometry) -> PoseModel:
-    return PoseModel(x=g.origin.x, y=g.origin.y, yaw=g.origin.yaw)
+def _placement(tiled: TiledMap, window: GridGeometry, layers: list[str],
+               stamp: float) -> dict[str, Any]:
+    """The fields every window reply shares (:class:`~sogm_service.messages.WindowReply`)."""
+    return dict(map=tiled.name, frame=tiled.frame, stamp=stamp, resolution=window.resolution,
+                origin=PoseModel(x=window.origin.x, y=window.origin.y, yaw=window.origin.yaw),
+                width=window.width, height=window.height, layers=layers)
 
 
 def submap(tiled: TiledMap, req: SubmapRequest, limit_cells: int, stamp: float) -> GridReply:
@@ -95,9 +99,7 @@ def submap(tiled: TiledMap, req: SubmapRequest, limit_cells: int, stamp: float) 
     window = window_of(req, tiled, limit_cells, len(layers))
     stack = tiled.sample(window, layers, req.interp)
     data = logodds.encode_fixed(stack, req.encoding)
-    return GridReply(map=tiled.name, frame=tiled.frame, stamp=stamp,
-                     resolution=window.resolution, origin=_pose(window), width=window.width,
-                     height=window.height, layers=layers, encoding=req.encoding,
+    return GridReply(**_placement(tiled, window, layers, stamp), encoding=req.encoding,
                      interp=req.interp, data=WireArray.from_array(data))
 
 
@@ -116,9 +118,7 @@ def fused(tiled: TiledMap, req: FusedRequest, limit_cells: int, stamp: float) ->
     window = window_of(req, tiled, limit_cells, len(layers))
     stack = tiled.sample(window, layers, req.interp)
     data = logodds.encode_fixed(fuse_layers(stack, req.method), req.encoding)
-    return FusedReply(map=tiled.name, frame=tiled.frame, stamp=stamp,
-                      resolution=window.resolution, origin=_pose(window), width=window.width,
-                      height=window.height, layers=layers, method=req.method,
+    return FusedReply(**_placement(tiled, window, layers, stamp), method=req.method,
                       encoding=req.encoding, interp=req.interp,
                       data=WireArray.from_array(data))
 
@@ -163,7 +163,5 @@ def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry, lay
                            mean_probability=graph.mean_probability[k].tolist())
              for k in range(graph.count)]
     labels = WireArray.from_array(graph.labels) if req.labels else None
-    return SupercellReply(map=tiled.name, frame=tiled.frame, stamp=stamp,
-                          resolution=window.resolution, origin=_pose(window),
-                          width=window.width, height=window.height, layers=layers,
-                          nodes=nodes, labels=labels)
+    return SupercellReply(**_placement(tiled, window, layers, stamp), nodes=nodes,
+                          labels=labels)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -50,8 +51,9 @@ def _publish_reference_and_cut(client: MapClient) -> None:
                        resolution=RES, origin=CLAIMED, layer="obstacle", robot="robot1")
 
 
-def test_misaligned_ism_is_corrected_before_fusion(tmp_path: Path) -> None:
-    srv = _matching_server(tmp_path, "correct")
+def _run_reference_and_cut(tmp_path: Path, mode: str) -> tuple[list[MatchReport], Any, Any]:
+    """A server in ``mode``; the reference map, then the drifted cut: reports, stats, map."""
+    srv = _matching_server(tmp_path, mode)
     try:
         with srv.client() as client:
             reports = _reports(client)
@@ -59,8 +61,15 @@ def test_misaligned_ism_is_corrected_before_fusion(tmp_path: Path) -> None:
             wait_processed(client, 2)
             assert wait_until(lambda: len(reports) == 1, 5)
             stats = client.stats()
+            got = client.submap(x=12.8, y=12.8, width=25.6, height=25.6, resolution=RES,
+                                encoding="logodds_i16")
     finally:
         assert srv.terminate() == 0
+    return reports, stats, got
+
+
+def test_misaligned_ism_is_corrected_before_fusion(tmp_path: Path) -> None:
+    reports, stats, _ = _run_reference_and_cut(tmp_path, "correct")
     report = reports[0]
     assert report.accepted and report.reason == "ok" and report.mode == "correct"
     assert report.corrected is not None
@@ -72,17 +81,7 @@ def test_misaligned_ism_is_corrected_before_fusion(tmp_path: Path) -> None:
 
 
 def test_report_mode_publishes_the_correction_and_fuses_as_claimed(tmp_path: Path) -> None:
-    srv = _matching_server(tmp_path, "report")
-    try:
-        with srv.client() as client:
-            reports = _reports(client)
-            _publish_reference_and_cut(client)
-            wait_processed(client, 2)
-            assert wait_until(lambda: len(reports) == 1, 5)
-            got = client.submap(x=12.8, y=12.8, width=25.6, height=25.6, resolution=RES,
-                                encoding="logodds_i16")
-    finally:
-        assert srv.terminate() == 0
+    reports, _, got = _run_reference_and_cut(tmp_path, "report")
     assert reports[0].accepted and reports[0].mode == "report"
     assert reports[0].dx_m == pytest.approx(TRUE.x - CLAIMED.x, abs=0.15)
     # The map is exactly what fusing both ISMs as claimed gives.
