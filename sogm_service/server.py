@@ -143,7 +143,6 @@ class MapServer:
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._reject_log = _RateLimitedLog()
-        self._extensions: list[Callable[[MapServer], None]] = []
         self.server_id = ""
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -183,18 +182,8 @@ class MapServer:
             self._declared.append(s.declare_queryable(self.config.key(name),
                                                       self._guarded(name, handler)))
         self._declared.extend(self.persistence.declare(s, self._guarded))
-        for extension in self._extensions:
-            extension(self)
         self._declared.append(
             s.liveliness().declare_token(self.config.key("@server", self.server_id)))
-
-    def declare(self, obj: Any) -> None:
-        """Keep a declared Zenoh entity alive until :meth:`stop` (for extensions)."""
-        self._declared.append(obj)
-
-    def add_extension(self, extension: Callable[[MapServer], None]) -> None:
-        """Run ``extension(server)`` at start to declare more queryables (before start)."""
-        self._extensions.append(extension)
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop accepting work, finish what is queued, flush the store, close the session."""
@@ -221,9 +210,16 @@ class MapServer:
 
     # -- ingestion ------------------------------------------------------------------------
     def _on_ism_callback(self, source: int) -> Callable[[zenoh.Sample], None]:
+        limit = self.config.limits.max_payload_bytes
+
         def on_ism(sample: zenoh.Sample) -> None:
             self.stats.count("isms_received")
-            self._queue.put(_Item(source, str(sample.key_expr), sample.payload.to_bytes()))
+            payload = sample.payload.to_bytes()
+            if len(payload) > limit:  # refused before it can occupy the queue
+                self._reject("too_large", f"{sample.key_expr}: payload of {len(payload)} "
+                                          f"bytes exceeds {limit}")
+                return
+            self._queue.put(_Item(source, str(sample.key_expr), payload))
         return on_ism
 
     def _work(self) -> None:

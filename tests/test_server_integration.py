@@ -256,3 +256,19 @@ def test_ism_covering_absurd_ground_is_refused_before_any_tile_exists(
         info = client.info()
     assert stats.rejected == {"too_large": 1}
     assert info.tiles == [] and info.layers == []
+
+
+def test_payload_over_the_byte_limit_is_refused_before_queueing(tmp_path: Path) -> None:
+    srv = start_server(tmp_path, {"limits": {"max_payload_bytes": 10_000}})
+    try:
+        with srv.client() as client:
+            client.publish_ism("ism/r/laser/obstacle", np.full((200, 200), 200, np.uint8),
+                               resolution=0.05)
+            client.publish_ism("ism/r/laser/obstacle", np.full((50, 50), 200, np.uint8),
+                               resolution=0.05)
+            counters = wait_processed(client, 2)
+            stats = client.stats()
+    finally:
+        assert srv.terminate() == 0
+    assert counters["isms_fused"] == 1
+    assert stats.rejected == {"too_large": 1}
