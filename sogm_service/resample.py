@@ -233,7 +233,8 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
     """Every tile's share of the increments ``inc`` (given in ``geometry``), raster order.
 
     Aligned ISMs are sliced (views, no copy); others are warped block by block, the ISM's
-    inverse transform computed once.
+    inverse transform computed once, into one scratch buffer: a warped patch is valid only
+    until the next one is produced (consume it at once, as :meth:`TiledMap.fuse` does).
     """
     if interp not in INTERPOLATIONS:
         raise ValueError(f"unknown interpolation {interp!r}; use one of {INTERPOLATIONS}")
@@ -248,6 +249,9 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
     to_src = geometry.world_to_cell()
     # float32: OpenCV's bilinear warp of float is ~4x faster than of int16 (SIMD).
     src = inc.astype(np.float32) if interp == "biodds" else inc
+    # One tile-sized buffer for every block: fresh arrays of this size are mmapped and
+    # page-faulted on every call by glibc, which costs as much as the warp itself.
+    scratch = np.empty((t, t), dtype=src.dtype)
     for index in lattice.tiles_overlapping(geometry):
         block = tile_block(corners, index, t)
         if block is None:
@@ -259,7 +263,8 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
             yield TilePatch(index, block, resample_logodds(inc, geometry, sub, interp))
             continue
         c2w = np.array([[res, 0.0, x0 + 0.5 * res], [0.0, res, y0 + 0.5 * res], [0, 0, 1.0]])
-        yield TilePatch(index, block, _warp_block(src, to_src @ c2w, (w, h), interp))
+        yield TilePatch(index, block,
+                        _warp_block(src, to_src @ c2w, scratch[:h, :w], interp))
 
 
 def _aligned_patches(inc: npt.NDArray[np.int16], offset: tuple[int, int],
@@ -274,13 +279,16 @@ def _aligned_patches(inc: npt.NDArray[np.int16], offset: tuple[int, int],
                             inc[v0 - cv:v1 - cv, u0 - cu:u1 - cu])
 
 
-def _warp_block(src: npt.NDArray, m: npt.NDArray[np.float64], size: tuple[int, int],
+def _warp_block(src: npt.NDArray, m: npt.NDArray[np.float64], out: npt.NDArray,
                 interp: Interp) -> npt.NDArray:
-    """``src`` sampled at the cells of an axis-aligned block; ``m``: block cells -> src cells."""
+    """``src`` sampled into ``out``, the cells of an axis-aligned block; ``m``: block cells ->
+    src cells."""
     flag = cv2.INTER_LINEAR if interp == "biodds" else cv2.INTER_NEAREST
-    out: npt.NDArray = cv2.warpAffine(src, m[:2], size, flags=flag | cv2.WARP_INVERSE_MAP,
-                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    return out
+    h, w = out.shape
+    done: npt.NDArray = cv2.warpAffine(src, m[:2], (w, h), dst=out,
+                                       flags=flag | cv2.WARP_INVERSE_MAP,
+                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return done
 
 
 def informative(patch: npt.NDArray) -> bool:
