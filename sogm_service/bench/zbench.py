@@ -317,6 +317,7 @@ def memory(quick: bool) -> Row:
     with tempfile.TemporaryDirectory(prefix="sogm-bench-") as tmp, \
             map_server(Path(tmp)) as served:
         proc, client = served.proc, served.client
+        idle = _proc_status(proc.pid, "VmRSS")
         n = 0
         for k in range(layers):
             for i in range(0, side, piece):
@@ -334,8 +335,8 @@ def memory(quick: bool) -> Row:
                "raw int16 bytes of 8 layers x 2000 x 2000 cells",
                f"server process VmHWM; limit {limit:.0f} MB; resident tiles "
                f"{stats.extra.get('tiles_resident')}, {stats.extra.get('resident_mb')} MB; "
-               f"RSS at the end {rss:.0f} MB",
-               {"limit_mb": limit, "rss_end_mb": rss, "isms": float(n),
+               f"RSS idle {idle:.0f} MB, at the end {rss:.0f} MB",
+               {"limit_mb": limit, "rss_idle_mb": idle, "rss_end_mb": rss, "isms": float(n),
                 "fused": float(counters.get("isms_fused", 0))})
 
 
