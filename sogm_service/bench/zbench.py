@@ -145,7 +145,7 @@ def helper(directory: Path, role: str, *args: str, stdin: bool = False) -> Itera
         proc.stop()
 
 
-def wait_fused(client: MapClient, n: int, timeout: float = 300.0,
+def wait_fused(client: MapClient, n: int, timeout: float = 120.0,
                interval: float = 0.01) -> tuple[float, dict[str, int]]:
     """Wall-clock time at which the server had fused or rejected ``n`` ISMs, and counters."""
     deadline = time.monotonic() + timeout
