@@ -200,15 +200,8 @@ def forget(state: Fixed, factor: float) -> None:
     np.copyto(state, np.rint(state * np.float32(factor)).astype(DTYPE))
 
 
-def encode_fixed(l: npt.ArrayLike, encoding: Encoding | str) -> npt.NDArray:
-    """Fixed log-odds (any int dtype) -> an output encoding for replies.
-
-    ``occupancy_i8`` writes -1 where the cell is exactly unknown (l == 0).
-    """
-    encoding = Encoding(encoding)
-    l = np.asarray(l)
-    if encoding is Encoding.LOGODDS_I16:
-        return np.clip(l, -32767, 32767).astype(np.int16)
+def _encode_direct(l: npt.NDArray, encoding: Encoding) -> npt.NDArray:
+    """The definition of each reply encoding (what the tables below are built from)."""
     p = fixed_to_prob(l)
     if encoding is Encoding.PROB_F32:
         return p
@@ -217,6 +210,34 @@ def encode_fixed(l: npt.ArrayLike, encoding: Encoding | str) -> npt.NDArray:
     occ = np.rint(p * 100.0).astype(np.int8)
     occ[l == 0] = OCCUPANCY_UNKNOWN
     return occ
+
+
+@lru_cache(maxsize=8)
+def _encode_table(encoding: Encoding) -> npt.NDArray:
+    """Every int16 log-odds value's encoding, indexed by its bit pattern as uint16 (64 Ki).
+
+    A reply of 4 x 256 x 256 cells then costs one gather instead of a float64 sigmoid through
+    several temporaries (about 4x faster here), with identical results.
+    """
+    values = np.arange(65536, dtype=np.uint16).view(np.int16)  # 0..32767, -32768..-1
+    table = _encode_direct(values, encoding)
+    table.setflags(write=False)
+    return table
+
+
+def encode_fixed(l: npt.ArrayLike, encoding: Encoding | str) -> npt.NDArray:
+    """Fixed log-odds (any int dtype) -> an output encoding for replies.
+
+    ``occupancy_i8`` writes -1 where the cell is exactly unknown (l == 0).  Values beyond the
+    int16 range (Eq. 6 sums of many layers) encode as the int16 extremes: P is 0 or 1 there
+    at every output precision.
+    """
+    encoding = Encoding(encoding)
+    l = np.asarray(l)
+    l16 = l if l.dtype == np.int16 else np.clip(l, -32768, 32767).astype(np.int16)
+    if encoding is Encoding.LOGODDS_I16:
+        return np.maximum(l16, -32767)
+    return np.take(_encode_table(encoding), np.ascontiguousarray(l16).view(np.uint16))
 
 
 def decode_to_prob(data: npt.NDArray, encoding: Encoding | str) -> npt.NDArray[np.float32]:

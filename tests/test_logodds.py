@@ -327,3 +327,18 @@ def test_logit_sigmoid_and_fixed_conversions() -> None:
     np.testing.assert_array_equal(logodds.to_fixed([1e300, -np.inf, 1.2344, -1.2346]),
                                   [MAX_STATE, -MAX_STATE, 1234, -1235])
     np.testing.assert_allclose(logodds.from_fixed(np.array([1500, -250])), [1.5, -0.25])
+
+
+@pytest.mark.parametrize("encoding", ["prob_u8", "prob_f32", "occupancy_i8"])
+def test_table_encoding_equals_the_definition_for_every_int16(encoding: str) -> None:
+    every = np.arange(-32768, 32768, dtype=np.int32)
+    p = logodds.sigmoid(every / logodds.SCALE)
+    want = {"prob_f32": p.astype(np.float32),
+            "prob_u8": np.rint(p.astype(np.float32) * 255.0).astype(np.uint8),
+            "occupancy_i8": np.where(every == 0, -1,
+                                     np.rint(p.astype(np.float32) * 100.0)).astype(np.int8)}
+    got16 = logodds.encode_fixed(every.astype(np.int16), encoding)
+    np.testing.assert_array_equal(got16, want[encoding])
+    # Eq. 6 sums beyond int16 encode like the int16 extremes.
+    beyond = logodds.encode_fixed(np.array([-10**6, 10**6], np.int32), encoding)
+    np.testing.assert_array_equal(beyond, want[encoding][[0, -1]])
