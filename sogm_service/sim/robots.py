@@ -68,6 +68,18 @@ def _random_cells(rng: np.random.Generator, world: World, drivable: npt.NDArray[
     return np.stack([m[0, 0] * us[pick] + m[0, 2], m[1, 1] * vs[pick] + m[1, 2]], axis=1)
 
 
+def _start_in_band(rng: np.random.Generator, world: World, drivable: npt.NDArray[np.bool_],
+                   i: int, n: int) -> npt.NDArray[np.float64] | None:
+    """A drivable start in the ``i``-th of ``n`` horizontal bands of the world, so that a fleet
+    spreads over the site instead of starting in one corner (None: that band has no room)."""
+    h = drivable.shape[0]
+    band = np.zeros_like(drivable)
+    band[i * h // n:(i + 1) * h // n] = True
+    if not (drivable & band).any():
+        return None
+    return _random_cells(rng, world, drivable & band, 1)[0]
+
+
 def plan_route(world: World, rng: np.random.Generator, duration_s: float, speed: float,
                turn_rate: float, hop: tuple[float, float],
                start: npt.NDArray[np.float64] | None = None) -> Route:
@@ -171,10 +183,12 @@ def make_robots(world: World, robots: int, duration_s: float, seed: int, *,
     """``robots`` robots named ``robot1..N`` with routes lasting ``duration_s``."""
     speed, turn, hop = motion_profile(world)
     suite: Sequence[Sensor] = default_sensors(world) if sensors is None else sensors
+    drivable = world.drivable()
     fleet = []
     for i in range(robots):
-        route = plan_route(world, np.random.default_rng([seed, i, 1]), duration_s, speed, turn,
-                           hop)
+        rng = np.random.default_rng([seed, i, 1])
+        start = _start_in_band(rng, world, drivable, i, robots)
+        route = plan_route(world, rng, duration_s, speed, turn, hop, start=start)
         fleet.append(Robot(f"robot{i + 1}", route, suite, odom_noise,
                            np.random.default_rng([seed, i, 2])))
     return fleet
