@@ -325,7 +325,8 @@ def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path
     window = dict(x=pose.x, y=pose.y, yaw=0.0, width=128 * res, height=128 * res,
                   resolution=res)
     reply = client.supercells(**window, labels=True)
-    fused = client.fused(method="max", **window, encoding="prob_f32")
+    fused = client.fused(method="max", **window, layers=obstacle_layers(reply.layers),
+                         encoding="prob_f32")
     files.append(_write_png(out / "supercells.png", draw_graph(reply, fused, scale=3)))
     return len(reply.nodes)
 
