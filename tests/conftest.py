@@ -93,20 +93,30 @@ def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = No
             [sys.executable, "-m", "sogm_service", "serve", "--config", str(config_path)],
             stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     server = ServerProcess(proc, endpoint, config_path, log_path)
-    map_name = sections.get("map", {}).get("name", "default")
-    deadline = time.monotonic() + wait
+    try:
+        _wait_until_discoverable(server, sections.get("map", {}).get("name", "default"),
+                                 time.monotonic() + wait)
+    except BaseException:
+        if proc.poll() is None:  # never leave a child behind, whatever went wrong
+            proc.kill()
+            proc.wait(5)
+        raise
+    return server
+
+
+def _wait_until_discoverable(server: ServerProcess, map_name: str, deadline: float) -> None:
     _wait_for_port(server, deadline)
-    with MapClient.connect(endpoint, map_name=map_name, timeout=1.0) as probe:
+    with MapClient.connect(server.endpoint, map_name=map_name, timeout=1.0) as probe:
         while time.monotonic() < deadline:
-            if proc.poll() is not None:
-                raise RuntimeError(f"server exited with {proc.returncode}:\n{server.log()}")
+            if server.proc.poll() is not None:
+                raise RuntimeError(
+                    f"server exited with {server.proc.returncode}:\n{server.log()}")
             try:
                 if probe.servers(timeout=1.0):
-                    return server
+                    return
             except Exception:
                 pass
             time.sleep(0.1)
-    server.terminate()
     raise RuntimeError(f"server did not come up:\n{server.log()}")
 
 
@@ -119,7 +129,6 @@ def _wait_for_port(server: ServerProcess, deadline: float) -> None:
             if s.connect_ex((host, int(port))) == 0:
                 return
         time.sleep(0.05)
-    server.terminate()
     raise RuntimeError(f"server never listened on {server.endpoint}:\n{server.log()}")
 
 
