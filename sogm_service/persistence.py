@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -256,9 +257,7 @@ class Persistence:
 
     # -- zenoh ----------------------------------------------------------------------------
     def declare(self, session: zenoh.Session, guard: Guard) -> list[Any]:
-        """Replicate (if configured), then declare the event publisher and tile queryables."""
-        if self.config.tiles.replicate_on_start:
-            self.replicate(session)
+        """Declare the event publisher and the tile and robot queryables."""
         key = self.config.key
         self._publisher = session.declare_publisher(
             key("events", "tile"), congestion_control=zenoh.CongestionControl.BLOCK,
@@ -302,8 +301,17 @@ class Persistence:
         return tile_to_bytes(self._format.header_for(index[0], index[1], names, stamp), data)
 
     def replicate(self, session: zenoh.Session, timeout: float = 30.0) -> int:
-        """Copy every tile a live server of this map offers on ``tiles/**``."""
+        """Copy every tile a live server of this map offers on ``tiles/**``.
+
+        Waits (up to ``timeout``) until another server of the map is visible by its liveliness
+        token: right after the session opens, the connection to the peer may not be up yet,
+        and a get then would find nothing and leave this server empty.
+        """
         assert self._map is not None
+        if not self._wait_for_peer(session, time.monotonic() + timeout):
+            log.warning("replication: no live server of map %r within %.0f s; starting empty",
+                        self.config.map.name, timeout)
+            return 0
         expect = self._format.expect
         copied = 0
         for reply in session.get(self.config.key("tiles", "**"), timeout=timeout):
@@ -323,6 +331,15 @@ class Persistence:
         self.stats.count("replica_tiles_copied", copied)
         log.info("replication: copied %d tiles from a live server", copied)
         return copied
+
+    def _wait_for_peer(self, session: zenoh.Session, deadline: float) -> bool:
+        key = self.config.key("@server", "*")
+        while time.monotonic() < deadline:
+            replies = session.liveliness().get(key, timeout=1.0)
+            if any(r.ok is not None for r in replies):
+                return True
+            time.sleep(0.2)
+        return False
 
     def stats_extra(self) -> dict[str, Any]:
         extra: dict[str, Any] = {"robots": len(self.manager.current_tiles())}

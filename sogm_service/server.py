@@ -168,6 +168,8 @@ class MapServer:
 
     def _declare(self) -> None:
         s = self.session
+        if self.config.tiles.replicate_on_start:  # before anything can be asked of this server
+            self.persistence.replicate(s)
         for idx, source in enumerate(self.config.ism):
             self._declared.append(s.declare_subscriber(
                 source.key_expr, self._on_ism_callback(idx)))

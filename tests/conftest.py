@@ -80,8 +80,11 @@ def write_config(path: Path, sections: dict[str, dict[str, Any]],
 
 def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = None,
                  ism: list[dict[str, Any]] | None = None, name: str = "server",
-                 endpoint: str | None = None, wait: float = 20.0) -> ServerProcess:
-    """Start ``python -m sogm_service serve`` with a config; return once it is discoverable."""
+                 endpoint: str | None = None, wait: float = 20.0,
+                 servers: int = 1) -> ServerProcess:
+    """Start ``python -m sogm_service serve`` with a config; return once it is discoverable
+    (``servers``: how many live servers of the map its endpoint must show, itself included,
+    when it is connected to others)."""
     sections = {k: dict(v) for k, v in (sections or {}).items()}
     listen = sections.setdefault("zenoh", {}).get("listen")
     endpoint = listen[0] if listen else (endpoint or free_tcp_endpoint())
@@ -95,7 +98,7 @@ def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = No
     server = ServerProcess(proc, endpoint, config_path, log_path)
     try:
         _wait_until_discoverable(server, sections.get("map", {}).get("name", "default"),
-                                 time.monotonic() + wait)
+                                 time.monotonic() + wait, servers)
     except BaseException:
         if proc.poll() is None:  # never leave a child behind, whatever went wrong
             proc.kill()
@@ -104,7 +107,8 @@ def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = No
     return server
 
 
-def _wait_until_discoverable(server: ServerProcess, map_name: str, deadline: float) -> None:
+def _wait_until_discoverable(server: ServerProcess, map_name: str, deadline: float,
+                             servers: int) -> None:
     _wait_for_port(server, deadline)
     with MapClient.connect(server.endpoint, map_name=map_name, timeout=1.0) as probe:
         while time.monotonic() < deadline:
@@ -112,7 +116,7 @@ def _wait_until_discoverable(server: ServerProcess, map_name: str, deadline: flo
                 raise RuntimeError(
                     f"server exited with {server.proc.returncode}:\n{server.log()}")
             try:
-                if probe.servers(timeout=1.0):
+                if len(probe.servers(timeout=1.0)) >= servers:
                     return
             except Exception:
                 pass

@@ -220,7 +220,7 @@ def test_second_server_copies_the_map_through_tiles(tmp_path: Path) -> None:
         second = start_server(tmp_path, {"map": {"name": "site"},
                                          "tiles": {"replicate_on_start": True},
                                          "zenoh": {"connect": [first.endpoint]}},
-                              name="second")
+                              name="second", servers=2)
     finally:
         assert first.terminate() == 0  # from here on only the copy can answer
     try:
@@ -246,6 +246,8 @@ def test_sigterm_flushes_every_queued_ism_to_the_store(tmp_path: Path) -> None:
     with srv.client() as client:
         for _ in range(25):
             client.publish_ism("ism/r/laser/obstacle", data, resolution=0.05)
+        # SIGTERM stops accepting work: first make sure all 25 have arrived.
+        assert wait_until(lambda: client.stats().counters.get("isms_received") == 25, 10)
     # No checkpoint has run (60 s interval): only the shutdown flush can save these.
     assert srv.terminate(timeout=15) == 0
     with TileStore(store_dir, "default", 0.05, 256) as store:
