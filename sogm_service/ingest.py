@@ -8,7 +8,9 @@ ISM's own pose and resolution into each tile it overlaps -> Eq. 1 add-then-clamp
 from __future__ import annotations
 
 import re
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -100,21 +102,24 @@ class Alignment:
 
 
 def align(tiled: TiledMap, inc: npt.NDArray[np.int16], geometry: GridGeometry,
-          layer: str, params: MatchParams, min_known: int) -> Alignment:
+          layer: str, params: MatchParams, min_known: int,
+          map_lock: AbstractContextManager[Any] | None = None) -> Alignment:
     """Match an ISM against the map window around its claimed pose.
 
     The ISM is first brought to map resolution in its own frame (matching needs one scale);
     the window is the claimed footprint plus the matcher's margin, sampled from ``layer``.
+    ``map_lock`` is held only while the map is read, not while features are matched.
     """
     res = tiled.lattice.resolution
     claimed = GridGeometry(res, max(1, round(geometry.width * geometry.resolution / res)),
                            max(1, round(geometry.height * geometry.resolution / res)),
                            geometry.origin)
     ism = inc if claimed == geometry else resample_logodds(inc, geometry, claimed, "biodds")
-    if layer not in tiled.layers:
-        return Alignment(None, ism, claimed, None)
     window = match_window(claimed, params)
-    surroundings = tiled.sample(window, [layer], "biodds")[0]
+    with map_lock or nullcontext():
+        if layer not in tiled.layers:
+            return Alignment(None, ism, claimed, None)
+        surroundings = tiled.sample(window, [layer], "biodds")[0]
     if np.count_nonzero(surroundings) < min_known:
         return Alignment(None, ism, claimed, None)
     result = match_ism(ism, surroundings, params, prior_matrix(claimed, window))

@@ -73,9 +73,8 @@ class Matcher:
         """The increments and geometry to fuse; raises ``IsmRejectedError`` per policy."""
         settings = self.config.ism[source].matching
         started = time.perf_counter()
-        with map_lock:
-            alignment = ingest.align(tiled, inc, geometry, settings.layer or layer,
-                                     self._params[source], MIN_KNOWN_CELLS)
+        alignment = ingest.align(tiled, inc, geometry, settings.layer or layer,
+                                 self._params[source], MIN_KNOWN_CELLS, map_lock)
         elapsed = time.perf_counter() - started
         result = alignment.result
         if result is None:
