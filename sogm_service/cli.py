@@ -110,8 +110,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Processes that fuse or sample for long: their large temporaries are kept on the heap
+# (:mod:`sogm_service.allocator`), which the short-lived commands do not need.
+_LONG_RUNNING = frozenset({"serve", "demo", "replay", "bench"})
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in _LONG_RUNNING:
+        from sogm_service.allocator import keep_large_allocations
+
+        keep_large_allocations()
     parser = build_parser()
     # Delegated subcommands parse their own options (including -h).
     if argv and argv[0] in _DELEGATED:
