@@ -406,15 +406,19 @@ def test_outside_the_source_is_unknown_not_zero(interp: str) -> None:
     assert (resample_logodds(l, src, far, interp) == 0).all()
 
 
-def test_resample_stack_is_per_layer() -> None:
-    rng = np.random.default_rng(70)
-    src = GridGeometry(0.1, 9, 7, Pose2D(0.1, 0.2, 0.3))
-    dst = GridGeometry(0.15, 6, 6, Pose2D(0.0, 0.0, -0.2))
-    stack = rng.integers(-6900, 6900, (3, 7, 9)).astype(np.int16)
+@pytest.mark.parametrize("layers", [1, 2, 3, 4, 5, 6, 9])
+def test_resample_stack_is_per_layer(layers: int) -> None:
+    # biodds warps layers as the channels of 4-channel images (pairs plane by plane, triples
+    # padded): every grouping must give each layer exactly its own resampling.
+    rng = np.random.default_rng(70 + layers)
+    src = GridGeometry(0.1, 29, 17, Pose2D(0.1, 0.2, 0.3))
+    dst = GridGeometry(0.15, 16, 13, Pose2D(0.0, 0.0, -0.2))
+    stack = rng.integers(-6900, 6900, (layers, 17, 29)).astype(np.int16)
     for interp in INTERPOLATIONS:
         out = resample_stack(stack, src, dst, interp)
-        assert out.shape == (3, 6, 6) and out.dtype == np.int16
-        for n in range(3):
+        assert out.shape == (layers, 13, 16) and out.dtype == np.int16
+        assert out.any()
+        for n in range(layers):
             np.testing.assert_array_equal(out[n], resample_logodds(stack[n], src, dst, interp))
 
 
