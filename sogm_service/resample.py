@@ -19,7 +19,7 @@ float32 log-odds and rounds.  The exact numpy path :func:`sample_bilinear` exist
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -154,6 +154,7 @@ def _biodds_stack(stack: npt.NDArray[np.int16], src: GridGeometry,
         group = list(stack[g0:g0 + 4])
         # Its 2- and 3-channel warps are slower than the 4-channel one: a pair is warped
         # plane by plane, a triple padded to four.
+        planes: Sequence[npt.NDArray]
         if len(group) <= 2:
             planes = [_biodds_warp(plane, m, dst) for plane in group]
         else:
