@@ -56,8 +56,9 @@ Decisions where the paper is silent: the bin of ``p`` is ``floor(p * K)`` (1 goe
 bin); the image border is not part of a perimeter; a block level is used only while the block
 edge halves exactly (so blocks nest and are single-label when their level runs); candidates are
 the supercells of the unit's 4-neighbours, the best one is taken; ties (change ``>= -1e-12``) do
-not move.  Speed: the sweeps are numba kernels (``cache=True``); 256x256 cells with 3 layers run
-in about 7 ms on this machine (OpenCV's SEEDS: about 9 ms), see
+not move.  Speed: the whole schedule is one numba kernel (``cache=True``); 256x256 cells with 3
+layers and 1024 supercells run in about 7.8 ms at the default gamma 0.01 (5.4 ms at gamma 0.1,
+fewer accepted moves) on this 2-core machine, OpenCV's SEEDS in about 9.6-11 ms, see
 :func:`benchmark_sevds_vs_seeds`.
 
 Pure numpy + numba (``cache=True``), no I/O.
@@ -174,6 +175,11 @@ def quantize(stack: npt.ArrayLike, bins: int) -> npt.NDArray[np.uint8]:
 
 
 # --------------------------------------------------------------------------- numba kernels
+#
+# Every kernel below that runs per cell or per unit takes no function call with array arguments:
+# numba increfs and decrefs each array argument of a non-inlined call with an atomic instruction,
+# and with a dozen state arrays per move that cost more than the arithmetic (a fifth of the run
+# time before the move was written out in the sweep).  The helpers are ``inline="always"``.
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -196,92 +202,31 @@ def _zero_variance(hist: npt.NDArray[np.int32], c: int) -> bool:
     return True
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _removable(ul: npt.NDArray[np.int32], i: int, j: int) -> bool:
-    """SEEDS's 3x3 simple-point test: the label at (i, j) stays 4-connected without (i, j).
+def _removable_table() -> npt.NDArray[np.bool_]:
+    """SEEDS's 3x3 simple-point test for every 8-ring pattern (bit r: ring cell r, clockwise
+    from the top, carries the centre's label): True when the label stays 4-connected without
+    the centre.
 
-    Walk the 8-ring; runs of same-label cells are 4-connected inside the ring.  Removing the
-    centre is safe when at most one run touches it through a 4-neighbour.
+    Runs of same-label cells are 4-connected inside the ring; removing the centre is safe when
+    at most one run touches it through a 4-neighbour (even ring index).  A full ring (255) is an
+    interior unit: not removable.
     """
-    di = (-1, -1, 0, 1, 1, 1, 0, -1)
-    dj = (0, 1, 1, 1, 0, -1, -1, -1)
-    a = ul[i, j]
-    hu, wu = ul.shape
-    mask = 0  # bit r set: ring cell r carries label a (a bit mask: no allocation per call)
-    for r in range(8):
-        y, x = i + di[r], j + dj[r]
-        if 0 <= y < hu and 0 <= x < wu and ul[y, x] == a:
-            mask |= 1 << r
-    if mask == 255:
-        return False  # interior unit
-    runs = 0
-    for r in range(8):
-        if mask >> r & 1 and not mask >> ((r + 7) % 8) & 1:
-            # A run starts at r: does it reach a 4-neighbour (even ring index)?
-            touches = False
-            t = r
-            while mask >> t & 1:
-                touches = touches or t % 2 == 0
-                t = (t + 1) % 8
-            if touches:
-                runs += 1
-    return runs <= 1
+    table = np.zeros(256, np.bool_)
+    for mask in range(255):
+        runs = 0
+        for r in range(8):
+            if mask >> r & 1 and not mask >> ((r + 7) % 8) & 1:  # a run starts at r
+                touches, t = False, r
+                while mask >> t & 1:
+                    touches = touches or t % 2 == 0
+                    t = (t + 1) % 8
+                runs += touches
+        table[mask] = runs <= 1
+    return table
 
 
-@numba.njit(cache=True, nogil=True)
-def _move_hist(q: npt.NDArray[np.uint8], hist: npt.NDArray[np.int32], s: int, i: int, j: int,
-               a: int, b: int) -> None:
-    """Move the cells of unit (i, j) (size ``s``) from supercell a's histograms to b's."""
-    h, w = q.shape[0], q.shape[1]
-    for v in range(i * s, min(h, (i + 1) * s)):
-        for u in range(j * s, min(w, (j + 1) * s)):
-            for n in range(q.shape[2]):
-                k = q[v, u, n]
-                hist[a, n, k] -= 1
-                hist[b, n, k] += 1
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _dist_of(c: int, cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
-             s2: npt.NDArray[np.float64]) -> float:
-    """Eq. 10: ``D'(c) = sum_n var(h(c_n))`` from the histogram moments of supercell c."""
-    inv = 1.0 / cnt[c]
-    total = 0.0
-    for n in range(s1.shape[1]):
-        total += _layer_var(inv, s1[c, n], s2[c, n])
-    return total
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _dist_with(c: int, i: int, j: int, sign: float, cnt: npt.NDArray[np.float64],
-               s1: npt.NDArray[np.float64], s2: npt.NDArray[np.float64],
-               uc: npt.NDArray[np.float64], um1: npt.NDArray[np.float64],
-               um2: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
-               centres: npt.NDArray[np.float64], s: int) -> float:
-    """Eq. 10 of supercell c with unit (i, j) added (sign +1) or removed (sign -1)."""
-    inv = 1.0 / (cnt[c] + sign * _unit_count(uc, i, j, s))
-    total = 0.0
-    for n in range(s1.shape[1]):
-        x1, x2 = _unit_moment(um1, um2, q, centres, s, i, j, n)
-        total += _layer_var(inv, s1[c, n] + sign * x1, s2[c, n] + sign * x2)
-    return total
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _unit_count(uc: npt.NDArray[np.float64], i: int, j: int, s: int) -> float:
-    return 1.0 if s == 1 else uc[i, j]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _unit_moment(um1: npt.NDArray[np.float64], um2: npt.NDArray[np.float64],
-                 q: npt.NDArray[np.uint8], centres: npt.NDArray[np.float64], s: int, i: int,
-                 j: int, n: int) -> tuple[float, float]:
-    """Sums of x and x^2 of unit (i, j) in layer n.  Single cells (s == 1) read them from their
-    bin index: building (H, W, N) moment arrays cost more than the sweeps (page faults)."""
-    if s == 1:
-        x = centres[q[i, j, n]]
-        return x, x * x
-    return um1[i, j, n], um2[i, j, n]
+# A global array: numba freezes it into the compiled kernels as a constant.
+_REMOVABLE = _removable_table()
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -304,31 +249,6 @@ def _seen_before(nb_lab: npt.NDArray[np.int32], r: int) -> bool:
 
 
 @numba.njit(cache=True, nogil=True)
-def _apply_move(a: int, b: int, i: int, j: int, p_unit: float, e_a: float, e_b: float,
-                cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
-                s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
-                dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
-                uc: npt.NDArray[np.float64], um1: npt.NDArray[np.float64],
-                um2: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
-                centres: npt.NDArray[np.float64], s: int) -> None:
-    """Move unit (i, j) from a to b: counts, moments, histograms, perimeters, D'."""
-    perim[a] += 2.0 * e_a - p_unit
-    perim[b] += p_unit - 2.0 * e_b
-    u = _unit_count(uc, i, j, s)
-    cnt[a] -= u
-    cnt[b] += u
-    for n in range(s1.shape[1]):
-        x1, x2 = _unit_moment(um1, um2, q, centres, s, i, j, n)
-        s1[a, n] -= x1
-        s2[a, n] -= x2
-        s1[b, n] += x1
-        s2[b, n] += x2
-    dval[a] = _dist_of(a, cnt, s1, s2)
-    dval[b] = _dist_of(b, cnt, s1, s2)
-    _move_hist(q, hist, s, i, j, a, b)
-
-
-@numba.njit(cache=True, nogil=True)
 def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
            um1: npt.NDArray[np.float64], um2: npt.NDArray[np.float64],
            rh: npt.NDArray[np.float64], cw: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
@@ -339,36 +259,70 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
     """One raster sweep of unit moves on the unit grid ``ul`` (units of ``s`` x ``s`` cells).
 
     Per supercell: count, sums of x and x^2 per layer, perimeter, D' and the K-bin histograms,
-    all updated in place.
+    all updated in place.  Single cells (``s == 1``) take their moments from their bin index
+    (``um1``/``um2`` are unused then): building (H, W, N) moment arrays cost more than the sweeps.
     """
     hu, wu = ul.shape
+    h, w, nl = q.shape
     moves = 0
     nb_lab = np.empty(4, dtype=np.int32)
     nb_w = np.empty(4, dtype=np.float64)
+    x1 = np.empty(nl)  # the unit's sums of x and x^2 per layer
+    x2 = np.empty(nl)
     for ii in range(hu):
         i = hu - 1 - ii if reverse else ii
         for jj in range(wu):
             j = wu - 1 - jj if reverse else jj
             a = ul[i, j]
-            p_unit, e_a = _neighbours(ul, i, j, rh, cw, nb_lab, nb_w)
-            u = _unit_count(uc, i, j, s)
+            # The 4 neighbours (up, right, down, left; -1 outside) and the shared edge lengths
+            # in cells (a column's width or a row's height); the unit's inner border p_unit and
+            # the part of it shared with its own supercell, e_a.
+            p_unit, e_a = 0.0, 0.0
+            for r in range(4):
+                y = i - 1 if r == 0 else (i + 1 if r == 2 else i)
+                x = j + 1 if r == 1 else (j - 1 if r == 3 else j)
+                if 0 <= y < hu and 0 <= x < wu:
+                    c = ul[y, x]
+                    wt = cw[j] if r % 2 == 0 else rh[i]
+                    nb_lab[r] = c
+                    nb_w[r] = wt
+                    p_unit += wt
+                    if c == a:
+                        e_a += wt
+                else:
+                    nb_lab[r] = -1
+                    nb_w[r] = 0.0
+            u = 1.0 if s == 1 else uc[i, j]
             if e_a == p_unit or cnt[a] <= u:
                 continue  # interior unit, or the move would empty a
+            for n in range(nl):
+                if s == 1:
+                    xv = centres[q[i, j, n]]
+                    x1[n] = xv
+                    x2[n] = xv * xv
+                else:
+                    x1[n] = um1[i, j, n]
+                    x2[n] = um2[i, j, n]
             # The best neighbouring supercell b to join (criteria in the module docstring).
-            # Written out here, not in a helper: passing the state arrays to a function cost
-            # several times the arithmetic (reference counting per call).
-            lose = 0.0
+            # d_a and d_b are D' of a without and b with the unit: after the move they are
+            # exactly what D' recomputed from the updated moments gives (same operations on
+            # the same values), so the move stores them instead of recomputing.
+            d_a, lose = 0.0, 0.0
             if energy:  # the loser's part of the energy change is the same for every b
-                lose = (cnt[a] - u) * _dist_with(a, i, j, -1.0, cnt, s1, s2, uc, um1, um2, q,
-                                                 centres, s) \
-                    - cnt[a] * dval[a]
-            best, b = -_EPS, -1
+                inv = 1.0 / (cnt[a] - u)
+                for n in range(nl):
+                    d_a += _layer_var(inv, s1[a, n] - x1[n], s2[a, n] - x2[n])
+                lose = (cnt[a] - u) * d_a - cnt[a] * dval[a]
+            best, b, d_b = -_EPS, -1, 0.0
             for r in range(4):
                 c = nb_lab[r]
                 if c < 0 or c == a or _seen_before(nb_lab, r):
                     continue
                 e_c = _edges_to(c, nb_lab, nb_w)
-                d_new = _dist_with(c, i, j, 1.0, cnt, s1, s2, uc, um1, um2, q, centres, s)
+                inv = 1.0 / (cnt[c] + u)
+                d_new = 0.0
+                for n in range(nl):
+                    d_new += _layer_var(inv, s1[c, n] + x1[n], s2[c, n] + x2[n])
                 if energy:
                     # E = sum_c |c| H(c): |c| D'(c) is the sum of squared deviations.
                     sc = lose + (cnt[c] + u) * d_new - cnt[c] * dval[c] \
@@ -378,65 +332,127 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
                     g_new = (perim[c] + p_unit - 2.0 * e_c) / (cnt[c] + u)
                     sc = d_new - dval[c] + gamma * (g_new - perim[c] / cnt[c])
                 if sc < best:
-                    best, b = sc, c
+                    best, b, d_b = sc, c, d_new
             # The constraints come after the (cheaper, usually negative) search.  The paper's
             # corner case: a supercell of zero total variance may not shrink.
             if b < 0 or (dval[a] < 1e-9 and _zero_variance(hist, a)):
                 continue
-            if not _removable(ul, i, j):
+            # SEEDS's simple-point test: the 8-ring pattern of a's label, clockwise from the
+            # top, looked up in _REMOVABLE.  Written out, not a helper taking ``ul``: an
+            # inlined helper still increfs and decrefs its array argument (atomics, ~5 %).
+            if 0 < i < hu - 1 and 0 < j < wu - 1:  # no bounds checks (almost every unit)
+                mask = (int(ul[i - 1, j] == a) | int(ul[i - 1, j + 1] == a) << 1
+                        | int(ul[i, j + 1] == a) << 2 | int(ul[i + 1, j + 1] == a) << 3
+                        | int(ul[i + 1, j] == a) << 4 | int(ul[i + 1, j - 1] == a) << 5
+                        | int(ul[i, j - 1] == a) << 6 | int(ul[i - 1, j - 1] == a) << 7)
+            else:
+                mask = 0
+                for r in range(8):
+                    y = i - 1 if r in (0, 1, 7) else (i + 1 if r in (3, 4, 5) else i)
+                    x = j + 1 if r in (1, 2, 3) else (j - 1 if r in (5, 6, 7) else j)
+                    if 0 <= y < hu and 0 <= x < wu and ul[y, x] == a:
+                        mask |= 1 << r
+            if not _REMOVABLE[mask]:
                 continue
-            _apply_move(a, b, i, j, p_unit, e_a, _edges_to(b, nb_lab, nb_w), cnt, s1, s2,
-                        perim, dval, hist, uc, um1, um2, q, centres, s)
+            # Move the unit from a to b: perimeters, counts, moments, D', histograms.
+            perim[a] += 2.0 * e_a - p_unit
+            perim[b] += p_unit - 2.0 * _edges_to(b, nb_lab, nb_w)
+            cnt[a] -= u
+            cnt[b] += u
+            for n in range(nl):
+                s1[a, n] -= x1[n]
+                s2[a, n] -= x2[n]
+                s1[b, n] += x1[n]
+                s2[b, n] += x2[n]
+            if not energy:  # Eq. 10 of a from its updated moments
+                inv = 1.0 / cnt[a]
+                for n in range(nl):
+                    d_a += _layer_var(inv, s1[a, n], s2[a, n])
+            dval[a] = d_a
+            dval[b] = d_b
+            for v in range(i * s, min(h, (i + 1) * s)):
+                for uu in range(j * s, min(w, (j + 1) * s)):
+                    for n in range(nl):
+                        k = q[v, uu, n]
+                        hist[a, n, k] -= 1
+                        hist[b, n, k] += 1
             ul[i, j] = b
             moves += 1
     return moves
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _neighbours(ul: npt.NDArray[np.int32], i: int, j: int, rh: npt.NDArray[np.float64],
-                cw: npt.NDArray[np.float64], nb_lab: npt.NDArray[np.int32],
-                nb_w: npt.NDArray[np.float64]) -> tuple[float, float]:
-    """Fill the 4 neighbours' labels (-1 outside) and shared edge lengths; return the unit's
-    inner border length and the part of it shared with its own supercell."""
-    hu, wu = ul.shape
-    a = ul[i, j]
-    p_unit, e_a = 0.0, 0.0
-    for r in range(4):
-        y = i - 1 if r == 0 else (i + 1 if r == 2 else i)
-        x = j + 1 if r == 1 else (j - 1 if r == 3 else j)
-        if 0 <= y < hu and 0 <= x < wu:
-            nb_lab[r] = ul[y, x]
-            # Shared edge length in cells: a column's width (vertical) or a row's height.
-            nb_w[r] = cw[j] if r % 2 == 0 else rh[i]
-            p_unit += nb_w[r]
-            if nb_lab[r] == a:
-                e_a += nb_w[r]
-        else:
-            nb_lab[r] = -1
-            nb_w[r] = 0.0
-    return p_unit, e_a
 
 
 @numba.njit(cache=True, nogil=True)
 def _unit_moments(q: npt.NDArray[np.uint8], centres: npt.NDArray[np.float64], s: int,
                   hu: int, wu: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
                                              npt.NDArray[np.float64]]:
-    """Per unit of ``s`` x ``s`` cells: cell count and per-layer sums of x and x^2 (Eq. 9)."""
+    """Per unit of ``s`` x ``s`` cells: cell count and per-layer sums of x and x^2 (Eq. 9).
+
+    The sums run over the unit's cells in raster order, in registers (one layer at a time).
+    """
     h, w, nl = q.shape
-    uc = np.zeros((hu, wu))
-    m1 = np.zeros((hu, wu, nl))
-    m2 = np.zeros((hu, wu, nl))
-    # Loop units, then their cells: no integer division per cell (it dominated this loop).
+    uc = np.empty((hu, wu))
+    m1 = np.empty((hu, wu, nl))
+    m2 = np.empty((hu, wu, nl))
     for i in range(hu):
+        v0, v1 = i * s, min(h, (i + 1) * s)
         for j in range(wu):
-            for v in range(i * s, min(h, (i + 1) * s)):
-                for u in range(j * s, min(w, (j + 1) * s)):
-                    uc[i, j] += 1.0
-                    for n in range(nl):
+            u0, u1 = j * s, min(w, (j + 1) * s)
+            uc[i, j] = float((v1 - v0) * (u1 - u0))
+            for n in range(nl):
+                a1, a2 = 0.0, 0.0
+                for v in range(v0, v1):
+                    for u in range(u0, u1):
                         x = centres[q[v, u, n]]
-                        m1[i, j, n] += x
-                        m2[i, j, n] += x * x
+                        a1 += x
+                        a2 += x * x
+                m1[i, j, n] = a1
+                m2[i, j, n] = a2
     return uc, m1, m2
+
+
+@numba.njit(cache=True, nogil=True)
+def _run(qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32],
+         sizes: npt.NDArray[np.int64], sweeps: npt.NDArray[np.int64],
+         cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
+         s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
+         dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
+         centres: npt.NDArray[np.float64], gamma: float,
+         energy: bool) -> tuple[npt.NDArray[np.int32], int]:
+    """The whole schedule: ``sweeps[l]`` alternating sweeps of units of ``sizes[l]`` cells.
+
+    Returns the cell labels and the number of moves.  ``labels`` is updated in place when the
+    schedule is only cell level.  One call from Python: the per-level setup in numpy and the
+    dispatch of every sweep cost as much as a block level.
+    """
+    h, w = labels.shape
+    moves = 0
+    for lev in range(sizes.size):
+        s = sizes[lev]
+        hu, wu = -(-h // s), -(-w // s)
+        if s == 1:
+            ul = labels
+            uc, m1, m2 = np.ones((1, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1))
+        else:
+            ul = np.empty((hu, wu), np.int32)  # blocks nest: each is one label
+            for i in range(hu):
+                for j in range(wu):
+                    ul[i, j] = labels[i * s, j * s]
+            uc, m1, m2 = _unit_moments(qt, centres, s, hu, wu)
+        rh = np.empty(hu)
+        for i in range(hu):
+            rh[i] = min(s, h - s * i)
+        cw = np.empty(wu)
+        for j in range(wu):
+            cw[j] = min(s, w - s * j)
+        for sweep in range(sweeps[lev]):
+            moves += _sweep(ul, uc, m1, m2, rh, cw, qt, s, cnt, s1, s2, perim, dval, hist,
+                            centres, gamma, energy, sweep % 2 == 1)
+        if s > 1:
+            labels = np.empty((h, w), np.int32)
+            for v in range(h):
+                for u in range(w):
+                    labels[v, u] = ul[v // s, u // s]
+    return labels, moves
 
 
 # --------------------------------------------------------------------------- driver
@@ -449,21 +465,12 @@ def _initial_labels(h: int, w: int, b: int) -> npt.NDArray[np.int32]:
     return np.ascontiguousarray(rows[:, None] + (np.arange(w, dtype=np.int32) // b)[None, :])
 
 
-def _perimeters(labels: npt.NDArray[np.int32], count: int) -> npt.NDArray[np.float64]:
-    """Boundary length of every supercell: 4-neighbour edges to another label."""
-    perim = np.zeros(count)
-    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1, :], labels[1:, :])):
-        diff = a != b
-        perim += np.bincount(a[diff], minlength=count) + np.bincount(b[diff], minlength=count)
-    return perim
-
-
 @numba.njit(cache=True, nogil=True)
 def _quantize_hwn(p: npt.NDArray[np.float32], bins: int) -> npt.NDArray[np.uint8]:
     """``(N, H, W)`` probabilities -> ``(H, W, N)`` bin indices (cell-major for the sweeps)."""
     nl, h, w = p.shape
     out = np.empty((h, w, nl), np.uint8)
-    for n in range(nl):
+    for n in range(nl):  # reads contiguous, writes strided: faster than the other way round
         for v in range(h):
             for u in range(w):
                 k = int(p[n, v, u] * bins)
@@ -476,17 +483,25 @@ def _supercell_state(
     qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32], count: int,
     centres: npt.NDArray[np.float64]
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64],
-           npt.NDArray[np.int32]]:
-    """Count, moments (sums of x, x^2) and per-layer histograms ``(S, N, K)`` per supercell."""
+           npt.NDArray[np.int32], npt.NDArray[np.float64]]:
+    """Count, moments (sums of x, x^2), per-layer histograms ``(S, N, K)`` and perimeters
+    (4-neighbour edges to another label) per supercell."""
     h, w, nl = qt.shape
     hist = np.zeros((count, nl, centres.size), np.int32)
     cnt = np.zeros(count)
+    perim = np.zeros(count)
     for v in range(h):
         for u in range(w):
             c = labels[v, u]
             cnt[c] += 1.0
             for n in range(nl):
                 hist[c, n, qt[v, u, n]] += 1
+            if u + 1 < w and labels[v, u + 1] != c:
+                perim[c] += 1.0
+                perim[labels[v, u + 1]] += 1.0
+            if v + 1 < h and labels[v + 1, u] != c:
+                perim[c] += 1.0
+                perim[labels[v + 1, u]] += 1.0
     s1 = np.zeros((count, nl))
     s2 = np.zeros((count, nl))
     for c in range(count):
@@ -494,7 +509,7 @@ def _supercell_state(
             for k in range(centres.size):
                 s1[c, n] += hist[c, n, k] * centres[k]
                 s2[c, n] += hist[c, n, k] * centres[k] * centres[k]
-    return cnt, s1, s2, hist
+    return cnt, s1, s2, hist, perim
 
 
 def sevds(stack: npt.ArrayLike, params: SevdsParams | None = None) -> SevdsResult:
@@ -511,26 +526,13 @@ def sevds(stack: npt.ArrayLike, params: SevdsParams | None = None) -> SevdsResul
     labels = _initial_labels(h, w, p.block_size)
     count = int(labels.max()) + 1
     centres = bin_centres(p.bins)
-    cnt, s1, s2, hist = _supercell_state(qt, labels, count, centres)
-    perim = _perimeters(labels, count)
+    cnt, s1, s2, hist, perim = _supercell_state(qt, labels, count, centres)
     dval = histogram_variance(hist).sum(axis=1)
-    energy = p.criterion == "energy"
-    moves = 0
-    schedule = [(s, 2) for s in p.block_sizes()] + [(1, p.iterations)]
-    for s, sweeps in schedule:
-        hu, wu = -(-h // s), -(-w // s)
-        ul = np.ascontiguousarray(labels[::s, ::s])  # blocks nest: each is one label
-        if s > 1:
-            uc, m1, m2 = _unit_moments(qt, centres, s, hu, wu)
-        else:  # single cells take their moments from their bin index (_unit_moment)
-            uc, m1, m2 = np.ones((1, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1))
-        rh = np.minimum(s, h - s * np.arange(hu)).astype(np.float64)
-        cw = np.minimum(s, w - s * np.arange(wu)).astype(np.float64)
-        for sweep in range(sweeps):
-            moves += _sweep(ul, uc, m1, m2, rh, cw, qt, s, cnt, s1, s2, perim, dval, hist,
-                            centres, float(p.gamma), energy, sweep % 2 == 1)
-        labels = np.repeat(np.repeat(ul, s, axis=0), s, axis=1)[:h, :w]
-    return SevdsResult(np.ascontiguousarray(labels, dtype=np.int32), hist, moves)
+    sizes = np.array([*p.block_sizes(), 1], np.int64)
+    sweeps = np.array([2] * (sizes.size - 1) + [p.iterations], np.int64)
+    labels, moves = _run(qt, labels, sizes, sweeps, cnt, s1, s2, perim, dval, hist, centres,
+                         float(p.gamma), p.criterion == "energy")
+    return SevdsResult(np.ascontiguousarray(labels, dtype=np.int32), hist, int(moves))
 
 
 # --------------------------------------------------------------------------- benchmark
