@@ -276,22 +276,33 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
             a = ul[i, j]
             # The 4 neighbours (up, right, down, left; -1 outside) and the shared edge lengths
             # in cells (a column's width or a row's height); the unit's inner border p_unit and
-            # the part of it shared with its own supercell, e_a.
-            p_unit, e_a = 0.0, 0.0
-            for r in range(4):
-                y = i - 1 if r == 0 else (i + 1 if r == 2 else i)
-                x = j + 1 if r == 1 else (j - 1 if r == 3 else j)
-                if 0 <= y < hu and 0 <= x < wu:
-                    c = ul[y, x]
-                    wt = cw[j] if r % 2 == 0 else rh[i]
-                    nb_lab[r] = c
-                    nb_w[r] = wt
-                    p_unit += wt
-                    if c == a:
-                        e_a += wt
-                else:
-                    nb_lab[r] = -1
-                    nb_w[r] = 0.0
+            # the part of it shared with its own supercell, e_a.  Edge lengths are whole
+            # numbers, so these sums are exact in any order.
+            if 0 < i < hu - 1 and 0 < j < wu - 1:  # all 4 neighbours inside (most units)
+                l0, l1, l2, l3 = ul[i - 1, j], ul[i, j + 1], ul[i + 1, j], ul[i, j - 1]
+                if l0 == a and l1 == a and l2 == a and l3 == a:
+                    continue  # interior unit (checked before any other work)
+                wv, wh = cw[j], rh[i]
+                nb_lab[0], nb_lab[1], nb_lab[2], nb_lab[3] = l0, l1, l2, l3
+                nb_w[0], nb_w[1], nb_w[2], nb_w[3] = wv, wh, wv, wh
+                p_unit = 2.0 * (wv + wh)
+                e_a = wv * ((l0 == a) + (l2 == a)) + wh * ((l1 == a) + (l3 == a))
+            else:
+                p_unit, e_a = 0.0, 0.0
+                for r in range(4):
+                    y = i - 1 if r == 0 else (i + 1 if r == 2 else i)
+                    x = j + 1 if r == 1 else (j - 1 if r == 3 else j)
+                    if 0 <= y < hu and 0 <= x < wu:
+                        c = ul[y, x]
+                        wt = cw[j] if r % 2 == 0 else rh[i]
+                        nb_lab[r] = c
+                        nb_w[r] = wt
+                        p_unit += wt
+                        if c == a:
+                            e_a += wt
+                    else:
+                        nb_lab[r] = -1
+                        nb_w[r] = 0.0
             u = 1.0 if s == 1 else uc[i, j]
             if e_a == p_unit or cnt[a] <= u:
                 continue  # interior unit, or the move would empty a
