@@ -57,9 +57,11 @@ bin); the image border is not part of a perimeter; a block level is used only wh
 edge halves exactly (so blocks nest and are single-label when their level runs); candidates are
 the supercells of the unit's 4-neighbours, the best one is taken; ties (change ``>= -1e-12``) do
 not move.  Speed: the whole schedule is one numba kernel (``cache=True``); 256x256 cells with 3
-layers and 1024 supercells run in about 7.8 ms at the default gamma 0.01 (5.4 ms at gamma 0.1,
-fewer accepted moves) on this 2-core machine, OpenCV's SEEDS in about 9.6-11 ms, see
-:func:`benchmark_sevds_vs_seeds`.
+layers and 1024 supercells take about 6.9 ms at the default gamma 0.01 (4.6 ms at gamma 0.1,
+fewer accepted moves) on this 2-core machine, OpenCV's SEEDS about 9.5-10.5 ms (ratio about
+0.7), see :func:`benchmark_sevds_vs_seeds`.  About 4.2 ms of it are the four cell-level sweeps
+(~26 000 moves), 1.7 ms the block levels (unit moments included) and 0.65 ms checking,
+quantizing and the initial state.
 
 Pure numpy + numba (``cache=True``), no I/O.
 """
@@ -176,10 +178,11 @@ def quantize(stack: npt.ArrayLike, bins: int) -> npt.NDArray[np.uint8]:
 
 # --------------------------------------------------------------------------- numba kernels
 #
-# Every kernel below that runs per cell or per unit takes no function call with array arguments:
-# numba increfs and decrefs each array argument of a non-inlined call with an atomic instruction,
-# and with a dozen state arrays per move that cost more than the arithmetic (a fifth of the run
-# time before the move was written out in the sweep).  The helpers are ``inline="always"``.
+# The per-unit loop of the sweep calls no non-inlined function with array arguments: numba
+# increfs and decrefs each array argument with an atomic instruction, and with a dozen state
+# arrays per move that cost more than the arithmetic (a fifth of the run time before the move
+# was written out in the sweep).  Even an ``inline="always"`` helper can keep the pair for an
+# array it is given (seen for the label grid, ~5 %), so the simple-point test is written out too.
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -248,7 +251,10 @@ def _seen_before(nb_lab: npt.NDArray[np.int32], r: int) -> bool:
     return False
 
 
-@numba.njit(cache=True, nogil=True)
+# error_model="numpy": no ZeroDivisionError check per float division (a compare and a branch
+# each).  No divisor here can be 0: counts are whole numbers >= 1 (a move never empties its
+# loser, and 1 / (|a| - u) is only taken when |a| > u), so the results are the same.
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
            um1: npt.NDArray[np.float64], um2: npt.NDArray[np.float64],
            rh: npt.NDArray[np.float64], cw: npt.NDArray[np.float64], q: npt.NDArray[np.uint8],
@@ -451,8 +457,8 @@ def _run(qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32],
     """The whole schedule: ``sweeps[l]`` alternating sweeps of units of ``sizes[l]`` cells.
 
     Returns the cell labels and the number of moves.  ``labels`` is updated in place when the
-    schedule is only cell level.  One call from Python: the per-level setup in numpy and the
-    dispatch of every sweep cost as much as a block level.
+    schedule is only cell level.  One call from Python, not one per sweep with the per-level
+    setup (unit grid, edge lengths, label expansion) in numpy around them.
     """
     h, w = labels.shape
     moves = 0
