@@ -408,8 +408,8 @@ def test_outside_the_source_is_unknown_not_zero(interp: str) -> None:
 
 @pytest.mark.parametrize("layers", [1, 2, 3, 4, 5, 6, 9])
 def test_resample_stack_is_per_layer(layers: int) -> None:
-    # biodds warps layers as the channels of 4-channel images (pairs plane by plane, triples
-    # padded): every grouping must give each layer exactly its own resampling.
+    # The stack path shares the transform, the float conversion and the rounding between
+    # layers: each layer must still come out exactly as resampled on its own.
     rng = np.random.default_rng(70 + layers)
     src = GridGeometry(0.1, 29, 17, Pose2D(0.1, 0.2, 0.3))
     dst = GridGeometry(0.15, 16, 13, Pose2D(0.0, 0.0, -0.2))
