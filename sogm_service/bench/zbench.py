@@ -190,11 +190,12 @@ def submap(quick: bool) -> Row:
 
 
 def _breakdown_in_child(repeats: int) -> dict[str, float]:
-    """:func:`submap_breakdown` in a fresh process: large temporaries cost page faults there as
-    in the server (glibc returns them to the OS), which a long-running bench process hides."""
+    """:func:`submap_breakdown` in a fresh process with the server's allocator settings
+    (:mod:`sogm_service.allocator`), not whatever state the bench process has reached."""
     import json
 
-    code = ("import json, sys; from sogm_service.bench.zbench import submap_breakdown; "
+    code = ("import json; from sogm_service.allocator import keep_large_allocations; "
+            "keep_large_allocations(); from sogm_service.bench.zbench import submap_breakdown; "
             f"print(json.dumps(submap_breakdown({repeats})))")
     out = subprocess.run([PY, "-c", code], capture_output=True, text=True, check=True,
                          timeout=120)
