@@ -169,15 +169,22 @@ def bayes_update(state: Fixed, inc: npt.NDArray, limits: tuple[int, int]) -> Non
     while adding, in one pass) of the same shape; ``limits`` from :func:`clamp_limits`.
     Cells with ``inc == 0`` (unknown) are unchanged because they were already inside the clamp.
     """
-    if inc.dtype == np.float32:
-        # |state + inc| <= 32000: no saturation.  OpenCV writes views in place; anything it
-        # had to copy (odd strides) is copied back.
-        out = cv2.add(state, inc, dst=state, dtype=cv2.CV_16S)
+    if state.ndim == 2 and state.strides[1] == state.itemsize:
+        # |state + inc| <= 32000: OpenCV's saturating int16 add never saturates here, so it is
+        # the exact sum; it is ~1.5x faster than numpy's on the strided views of an ISM (a
+        # tile's part of a wider ISM) and rounds float patches in the same pass.  OpenCV writes
+        # views with contiguous rows in place; anything it had to copy is copied back.  (Only 2-D:
+        # OpenCV reads a 1-D array of up to 4 values as a scalar.)
+        out = cv2.add(state, inc, dst=state,
+                      dtype=cv2.CV_16S if inc.dtype == np.float32 else -1)
         if out is not state:
             np.copyto(state, out)
+    elif inc.dtype == np.float32:
+        np.add(state, np.rint(inc), out=state, casting="unsafe")
     else:
         np.add(state, inc, out=state)
-    np.clip(state, limits[0], limits[1], out=state)
+    # int16 bounds: with Python ints numpy checks their range on every call (~1.3 us a tile).
+    np.clip(state, DTYPE(limits[0]), DTYPE(limits[1]), out=state)
 
 
 def fuse_bayes(stack: Fixed) -> npt.NDArray[np.int32]:
