@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import socket
+import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -36,6 +38,25 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
         s.bind((host, 0))
         port = s.getsockname()[1]
     return f"tcp/{host}:{port}"
+
+
+def wait_listening(endpoint: str, timeout: float, exited: Callable[[], bool],
+                   log: Callable[[], str], poll_s: float = 0.02) -> None:
+    """Wait until something accepts TCP connections on ``endpoint`` (``tcp/<host>:<port>``).
+
+    ``exited`` tells whether the process expected to listen is gone (then this raises at once);
+    ``log`` gives its output for the error.  Raises ``RuntimeError`` after ``timeout`` seconds.
+    """
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if exited():
+            raise RuntimeError(f"the process exited before listening on {endpoint}:\n{log()}")
+        with socket.socket() as s:
+            if s.connect_ex((host, int(port))) == 0:
+                return
+        time.sleep(poll_s)
+    raise RuntimeError(f"nothing listens on {endpoint} after {timeout:.0f} s:\n{log()}")
 
 
 def loopback_settings(*, listen: str | None = None, connect: str | None = None,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,7 +15,7 @@ from typing import Any
 import pytest
 
 from sogm_service.client import MapClient
-from sogm_service.zsession import free_tcp_endpoint
+from sogm_service.zsession import free_tcp_endpoint, wait_listening
 
 
 @dataclass
@@ -109,7 +108,8 @@ def start_server(tmp_path: Path, sections: dict[str, dict[str, Any]] | None = No
 
 def _wait_until_discoverable(server: ServerProcess, map_name: str, deadline: float,
                              servers: int) -> None:
-    _wait_for_port(server, deadline)
+    wait_listening(server.endpoint, deadline - time.monotonic(),
+                   lambda: server.proc.poll() is not None, server.log, poll_s=0.05)
     with MapClient.connect(server.endpoint, map_name=map_name, timeout=1.0) as probe:
         while time.monotonic() < deadline:
             if server.proc.poll() is not None:
@@ -122,18 +122,6 @@ def _wait_until_discoverable(server: ServerProcess, map_name: str, deadline: flo
                 pass
             time.sleep(0.1)
     raise RuntimeError(f"server did not come up:\n{server.log()}")
-
-
-def _wait_for_port(server: ServerProcess, deadline: float) -> None:
-    host, port = server.endpoint.removeprefix("tcp/").rsplit(":", 1)
-    while time.monotonic() < deadline:
-        if server.proc.poll() is not None:
-            raise RuntimeError(f"server exited with {server.proc.returncode}:\n{server.log()}")
-        with socket.socket() as s:
-            if s.connect_ex((host, int(port))) == 0:
-                return
-        time.sleep(0.05)
-    raise RuntimeError(f"server never listened on {server.endpoint}:\n{server.log()}")
 
 
 @pytest.fixture

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,7 +27,12 @@ from sogm_service.bench.core import Row, interleaved, median, percentile
 from sogm_service.client import MapClient
 from sogm_service.geometry import Pose2D
 from sogm_service.messages import StatsReply
-from sogm_service.zsession import free_tcp_endpoint, loopback_settings, open_session
+from sogm_service.zsession import (
+    free_tcp_endpoint,
+    loopback_settings,
+    open_session,
+    wait_listening,
+)
 
 PY = sys.executable
 
@@ -96,19 +100,6 @@ def _config(directory: Path, listen: str, queue_size: int = 64) -> Path:
     return path
 
 
-def _wait_port(endpoint: str, proc: Proc, timeout: float = 30.0) -> None:
-    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc.popen.poll() is not None:
-            raise RuntimeError(f"process exited:\n{proc.tail()}")
-        with socket.socket() as s:
-            if s.connect_ex((host, int(port))) == 0:
-                return
-        time.sleep(0.02)
-    raise RuntimeError(f"nothing listens on {endpoint}:\n{proc.tail()}")
-
-
 @dataclass
 class Served:
     proc: Proc
@@ -123,7 +114,7 @@ def map_server(directory: Path) -> Iterator[Served]:
     proc = Proc([PY, "-m", "sogm_service", "serve", "--config",
                  str(_config(directory, endpoint))], directory / "server.log")
     try:
-        _wait_port(endpoint, proc)
+        wait_listening(endpoint, 30.0, lambda: proc.popen.poll() is not None, proc.tail)
         with MapClient.connect(endpoint, timeout=10.0) as client:
             deadline = time.monotonic() + 30.0
             while not client.servers(timeout=1.0):
