@@ -2,6 +2,6 @@
 
 import sys
 
-from sogm_service.cli import main
+from sogm_service.apps.cli import main
 
 sys.exit(main())

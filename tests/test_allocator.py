@@ -11,7 +11,7 @@ import pytest
 
 glibc = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
 
-PROBE = ("import sys; from sogm_service.allocator import keep_large_allocations; "
+PROBE = ("import sys; from sogm_service.service.allocator import keep_large_allocations; "
          "print(keep_large_allocations())")
 
 
@@ -34,7 +34,7 @@ def test_an_explicit_environment_setting_wins() -> None:
 
 
 def test_only_long_running_commands_tune() -> None:
-    from sogm_service.cli import _LONG_RUNNING
+    from sogm_service.apps.cli import _LONG_RUNNING
 
     assert {"serve", "demo", "replay", "bench"} <= _LONG_RUNNING
     assert not {"query", "publish-ism", "schemas"} & _LONG_RUNNING

@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service.carmen import CarmenStats, carmen_angles, parse_flaser, read_carmen
-from sogm_service.geometry import window_geometry
-from sogm_service.laser import scan_endpoints_world
+from sogm_service.adapters.carmen import CarmenStats, carmen_angles, parse_flaser, read_carmen
+from sogm_service.adapters.laser import scan_endpoints_world
+from sogm_service.core.geometry import window_geometry
 from sogm_service.sim.fleet import replay_scans
 from sogm_service.sim.offline import map_scans
 from tests.conftest import ServerProcess, wait_processed

@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel
 
-from sogm_service import codec, messages
-from sogm_service.codec import DecodeError
-from sogm_service.messages import (
+from sogm_service.wire import codec, messages
+from sogm_service.wire.codec import DecodeError
+from sogm_service.wire.messages import (
     REJECT_CODES,
     SCHEMA_MODELS,
     ErrorReply,

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from sogm_service.config import ConfigError, ServiceConfig, load_config
+from sogm_service.service.config import ConfigError, ServiceConfig, load_config
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from sogm_service.demo import run_demo
+from sogm_service.apps.demo import run_demo
 
 pytestmark = pytest.mark.integration
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service import evaluation as ev
+from sogm_service.eval import segmentation as ev
 
 CLASSES = ("unknown", "floor", "table", "obstacle")
 

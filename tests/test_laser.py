@@ -8,13 +8,13 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.laser import (
+from sogm_service.adapters.laser import (
     encode_occupancy_i8,
     encode_prob_u8,
     laser_ism,
     scan_endpoints_world,
 )
+from sogm_service.core.geometry import GridGeometry, Pose2D
 
 RES = 0.1
 

@@ -15,8 +15,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sogm_service import logodds
-from sogm_service.logodds import MAX_STATE, MIN_EPS0, SCALE, Encoding
+from sogm_service.core import logodds
+from sogm_service.core.logodds import MAX_STATE, MIN_EPS0, SCALE, Encoding
 
 HALF_UNIT = 0.5 / SCALE  # nats: the rounding error of one fixed-point conversion
 F32 = 2.0**-24  # relative precision of float32 (fixed_to_prob returns float32)

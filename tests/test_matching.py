@@ -20,12 +20,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sogm_service import logodds
-from sogm_service import matching as mt
-from sogm_service.carmen import LaserScan, read_carmen
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.laser import laser_ism
-from sogm_service.resample import resample_logodds
+from sogm_service.adapters.carmen import LaserScan, read_carmen
+from sogm_service.adapters.laser import laser_ism
+from sogm_service.core import logodds
+from sogm_service.core import matching as mt
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.resample import resample_logodds
 
 RES = 0.05
 PLAN = 640

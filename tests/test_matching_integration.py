@@ -10,12 +10,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sogm_service import codec, logodds
-from sogm_service.client import MapClient
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.matching import synthetic_floorplan
-from sogm_service.messages import MatchReport
-from sogm_service.tiles import TiledMap
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.matching import synthetic_floorplan
+from sogm_service.core.tiles import TiledMap
+from sogm_service.service.client import MapClient
+from sogm_service.wire import codec
+from sogm_service.wire.messages import MatchReport
 from tests.conftest import start_server, wait_processed, wait_until
 
 pytestmark = pytest.mark.integration

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sogm_service import metrics
+from sogm_service.eval import metrics
 
 # A 2x4 grid split into two 2x2 superpixels; the ground truth splits it 3 columns | 1 column.
 SP = np.array([[0, 0, 1, 1], [0, 0, 1, 1]])

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sogm_service.carmen import read_carmen
-from sogm_service.cli import main as cli_main
-from sogm_service.laser import scan_endpoints_world
-from sogm_service.replay import replay_carmen
+from sogm_service.adapters.carmen import read_carmen
+from sogm_service.adapters.laser import scan_endpoints_world
+from sogm_service.apps.cli import main as cli_main
+from sogm_service.apps.replay import replay_carmen
 
 pytestmark = pytest.mark.integration
 

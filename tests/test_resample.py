@@ -18,9 +18,9 @@ import math
 import numpy as np
 import pytest
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.resample import (
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.resample import (
     INTERPOLATIONS,
     dst_to_src,
     resample_logodds,

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sogm_service.client import MapClient
-from sogm_service.zsession import free_tcp_endpoint
+from sogm_service.service.client import MapClient
+from sogm_service.service.session import free_tcp_endpoint
 from tests.conftest import start_server, wait_processed, wait_until
 
 pytestmark = pytest.mark.integration

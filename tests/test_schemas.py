@@ -10,8 +10,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from sogm_service import codec
-from sogm_service.messages import SCHEMA_MODELS
+from sogm_service.wire import codec
+from sogm_service.wire.messages import SCHEMA_MODELS
 
 SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
 

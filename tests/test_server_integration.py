@@ -10,11 +10,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from sogm_service import codec, ingest, logodds, queries
-from sogm_service.client import MapClient, QueryTimeoutError, ServiceError
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.messages import FusedRequest, IsmMessage, PoseModel, SubmapRequest
-from sogm_service.tiles import TiledMap
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.tiles import TiledMap
+from sogm_service.service import pipeline as ingest
+from sogm_service.service import queries
+from sogm_service.service.client import MapClient, QueryTimeoutError, ServiceError
+from sogm_service.wire import codec
+from sogm_service.wire.messages import FusedRequest, IsmMessage, PoseModel, SubmapRequest
 from tests.conftest import ServerProcess, start_server, wait_processed
 
 pytestmark = pytest.mark.integration

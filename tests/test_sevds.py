@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service.sevds import (
+from sogm_service.core.sevds import (
     SevdsParams,
     benchmark_sevds_vs_seeds,
     bin_centres,

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service.geometry import Pose2D, window_geometry
+from sogm_service.core.geometry import Pose2D, window_geometry
 from sogm_service.sim.fleet import run_fleet
 from sogm_service.sim.offline import map_world
 from sogm_service.sim.robots import SimStep, simulate

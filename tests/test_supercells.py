@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.sevds import SevdsParams
-from sogm_service.supercells import adjacency, extract_supercells, supercell_graph
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.sevds import SevdsParams
+from sogm_service.core.supercells import adjacency, extract_supercells, supercell_graph
 
 LABELS = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 2, 2]])
 

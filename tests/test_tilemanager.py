@@ -9,16 +9,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sogm_service.geodesy import GeoPoint, LocalTangentPlane, radii_of_curvature
-from sogm_service.geometry import TileLattice
-from sogm_service.messages import GeodeticFix
-from sogm_service.tilemanager import (
+from sogm_service.core.geodesy import GeoPoint, LocalTangentPlane, radii_of_curvature
+from sogm_service.core.geometry import TileLattice
+from sogm_service.core.tilemanager import (
     TileManager,
     TileSwitchEvent,
     hysteresis_from_fraction,
     tile_name,
     tile_token,
 )
+from sogm_service.wire.messages import GeodeticFix
 
 LATTICE = TileLattice(0.05, 256)  # span 12.8 m
 SPAN = LATTICE.span

@@ -12,10 +12,10 @@ import math
 import numpy as np
 import pytest
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
-from sogm_service.resample import sample_bilinear
-from sogm_service.tiles import TiledMap
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
+from sogm_service.core.resample import sample_bilinear
+from sogm_service.core.tiles import TiledMap
 
 RES = 0.1
 T = 8  # small tiles so that small ISMs cross boundaries

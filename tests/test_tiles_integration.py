@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.messages import TileEvent
-from sogm_service.tiles import TiledMap
-from sogm_service.tilestore import TileStore
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.tiles import TiledMap
+from sogm_service.store.tilestore import TileStore
+from sogm_service.wire.messages import TileEvent
 from tests.conftest import start_server, wait_processed, wait_until
 
 pytestmark = pytest.mark.integration

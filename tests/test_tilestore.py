@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sogm_service import logodds
-from sogm_service.geodesy import GeoPoint
-from sogm_service.geometry import TileLattice
-from sogm_service.tilemanager import TileManager
-from sogm_service.tilestore import (
+from sogm_service.core import logodds
+from sogm_service.core.geodesy import GeoPoint
+from sogm_service.core.geometry import TileLattice
+from sogm_service.core.tilemanager import TileManager
+from sogm_service.store.tilestore import (
     MAGIC,
     QUARANTINE_DIR,
     StoreLockedError,
@@ -186,7 +186,7 @@ def test_truncated_file_is_quarantined_on_index(tmp_path: Path,
     with open_store(tmp_path) as store:
         bad, good = _write_two(store)
         bad.write_bytes(bad.read_bytes()[:-100])  # a torn write without the rename protocol
-        with caplog.at_level(logging.WARNING, logger="sogm_service.tilestore"):
+        with caplog.at_level(logging.WARNING, logger="sogm_service.store.tilestore"):
             index = store.index()
         assert list(index) == [(1, 0)]
         assert not bad.exists() and good.exists()

@@ -11,9 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service import logodds, render
-from sogm_service.tilestore import QUARANTINE_DIR, TileStore, tile_file_name
-from sogm_service.tiletool import add_tiles_parser, build_parser, main, run_tiles
+from sogm_service.apps import render
+from sogm_service.apps.tiletool import add_tiles_parser, build_parser, main, run_tiles
+from sogm_service.core import logodds
+from sogm_service.store.tilestore import QUARANTINE_DIR, TileStore, tile_file_name
 
 T = 16
 RES = 0.1  # 1.6 m tiles

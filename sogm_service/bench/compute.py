@@ -11,11 +11,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import ingest
 from sogm_service.bench.core import Row, interleaved, median, time_row, unavailable
-from sogm_service.geometry import Pose2D, TileLattice
-from sogm_service.messages import IsmMessage, PoseModel
-from sogm_service.tiles import TiledMap
+from sogm_service.core.geometry import Pose2D, TileLattice
+from sogm_service.core.tiles import TiledMap
+from sogm_service.service import pipeline as ingest
+from sogm_service.wire.messages import IsmMessage, PoseModel
 
 MAP_RES = 0.05
 
@@ -78,7 +78,7 @@ def fuse_aligned(quick: bool) -> Row:
 def _aligned_bounds(msg: IsmMessage, repeats: int, quick: bool) -> dict[str, float | str]:
     """What bounds the aligned fuse: the table lookup alone, and the add floor per 1M cells
     when the arrays do not fit in the caches (64 Mi cells)."""
-    from sogm_service import logodds
+    from sogm_service.core import logodds
 
     codes = msg.array()
     lut = interleaved(lambda: logodds.increments(codes, "prob_u8"), lambda: None, repeats)[0]
@@ -105,7 +105,8 @@ def fuse_rotated(quick: bool) -> Row:
 
 def sevds(quick: bool) -> Row:
     name, target = "sevds_256x256x3", "<= 1x"
-    fn = _find("benchmark_sevds_vs_seeds", ("sogm_service.sevds", "sogm_service.supercells"))
+    fn = _find("benchmark_sevds_vs_seeds", ("sogm_service.core.sevds",
+    "sogm_service.core.supercells"))
     if fn is None:
         return unavailable(name, target, "no benchmark_sevds_vs_seeds() yet")
     result = _sevds_result(fn, 2 if quick else 7)
@@ -128,7 +129,7 @@ def _sevds_result(fn: Callable[..., Any], repeats: int) -> dict[str, Any]:
 
 
 def matching(quick: bool) -> Row:
-    fn = _find("benchmark_match", ("sogm_service.matching",))
+    fn = _find("benchmark_match", ("sogm_service.core.matching",))
     if fn is None:
         return unavailable("scan_match_256", "report", "no benchmark_match() yet")
     repeats = 3 if quick else 20

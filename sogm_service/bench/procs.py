@@ -23,8 +23,8 @@ from typing import Any
 
 import zenoh
 
-from sogm_service import codec
-from sogm_service.zsession import loopback_settings, open_session
+from sogm_service.service.session import loopback_settings, open_session
+from sogm_service.wire import codec
 
 
 def _stop_event() -> threading.Event:
@@ -78,7 +78,7 @@ def ism_payloads(count: int, size: int, seed: int = 0) -> list[bytes]:
     import numpy as np
 
     from sogm_service.bench.compute import MAP_RES, ism_message, synthetic_ism
-    from sogm_service.geometry import Pose2D
+    from sogm_service.core.geometry import Pose2D
 
     rng = np.random.default_rng(seed)
     codes = [synthetic_ism(size, s) for s in range(4)]

@@ -3,7 +3,8 @@
 * :mod:`.worlds`: ground-truth worlds (class label + object height per cell), randomised by seed:
   a table-top room like the paper's Section IV scenarios and a fleet-scale warehouse.
 * :mod:`.robots`: robots driving collision-free waypoint routes, optional odometry drift.
-* :mod:`.sensors`: a tilted 2-D laser (``obstacle`` layer, via :func:`sogm_service.laser.laser_ism`)
+* :mod:`.sensors`: a tilted 2-D laser (``obstacle`` layer, via
+:func:`sogm_service.adapters.laser.laser_ism`)
   and a camera with a semantic classifier (one ISM per class, coarser than the map).
 * :mod:`.offline`: drive robots over a world and fuse their ISMs without Zenoh.
 * :mod:`.fleet`: the same robots publishing over Zenoh (the only module here that imports zenoh).

@@ -3,10 +3,11 @@ ISMs and poses.
 
 Each robot of :func:`sogm_service.sim.robots.simulate` connects its own Zenoh session (client
 mode, multicast scouting off, to the map server's endpoint, e.g. ``tcp/127.0.0.1:7447``) through
-:class:`sogm_service.client.MapClient` and publishes, per step,
+:class:`sogm_service.service.client.MapClient` and publishes, per step,
 
-* its reported pose on ``pose/<robot>`` (:class:`~sogm_service.messages.PoseMessage`);
-* each sensor ISM on ``ism/<robot>/<sensor>/<class>`` (:class:`~sogm_service.messages.IsmMessage`)
+* its reported pose on ``pose/<robot>`` (:class:`~sogm_service.wire.messages.PoseMessage`);
+* each sensor ISM on ``ism/<robot>/<sensor>/<class>``
+(:class:`~sogm_service.wire.messages.IsmMessage`)
   with ``layer`` set to the class, so that every robot's ISMs of one class fuse into one map
   layer (the server would otherwise name the layer after the key's remainder).
 
@@ -30,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sogm_service.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
-from sogm_service.client import MapClient
-from sogm_service.geometry import Pose2D
-from sogm_service.laser import encode_occupancy_i8, encode_prob_u8
+from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
+from sogm_service.adapters.laser import encode_occupancy_i8, encode_prob_u8
+from sogm_service.core.geometry import Pose2D
+from sogm_service.service.client import MapClient
 from sogm_service.sim.robots import SimStep, simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm
 from sogm_service.sim.worlds import World
@@ -150,11 +151,11 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
                  usable_range: float = DEFAULT_USABLE_RANGE, speed: float = 1.0,
                  encoding: str = "occupancy_i8", ism_prefix: str = "ism",
                  pose_prefix: str = "pose", stop: threading.Event | None = None) -> FleetStats:
-    """Publish recorded scans (e.g. :func:`sogm_service.carmen.read_carmen`) as one robot.
+    """Publish recorded scans (e.g. :func:`sogm_service.adapters.carmen.read_carmen`) as one robot.
 
     Per scan: the laser pose on ``pose/<robot>`` and its ISM
-    (:func:`sogm_service.carmen.scan_ism`) on ``ism/<robot>/<sensor>/<layer>``, stamped with
-    the log's own stamps.  ``speed`` scales the log's pace (2.0 = twice as fast; 0 = as fast as
+    (:func:`~sogm_service.adapters.carmen.scan_ism`) on ``ism/<robot>/<sensor>/<layer>``, stamped
+    with the log's own stamps.  ``speed`` scales the log's pace (2.0 = twice as fast; 0 = as fast as
     possible).  The backbone of ``sogm-service replay carmen FILE``.
     """
     stats = FleetStats()

@@ -1,9 +1,10 @@
 """Offline mapping without Zenoh: simulated robots over a world, or a recorded laser log.
 
 The same pipeline as the map server, in one process: each ISM becomes fixed-point log-odds
-increments (:func:`sogm_service.logodds.increments`), is warped into the part of the map grid it
-covers (:func:`sogm_service.resample.resample_logodds`, biodds by default: the paper's Eq. 5)
-and fused by Eq. 1 (:func:`sogm_service.logodds.bayes_update`).  Used by the paper's Section IV
+increments (:func:`sogm_service.core.logodds.increments`), is warped into the part of the map
+grid it
+covers (:func:`sogm_service.core.resample.resample_logodds`, biodds by default: the paper's Eq. 5)
+and fused by Eq. 1 (:func:`sogm_service.core.logodds.bayes_update`).  Used by the paper's Section IV
 evaluation and by tests.
 """
 
@@ -15,10 +16,10 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.resample import Interp, resample_logodds
+from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.resample import Interp, resample_logodds
 from sogm_service.sim.robots import simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
 from sogm_service.sim.worlds import World
@@ -103,13 +104,13 @@ def map_scans(scans: Iterable[LaserScan], resolution: float = 0.05,
               *, layer: str = "obstacle", margin: float = 1.0, interp: Interp = "biodds",
               eps0: float = logodds.DEFAULT_EPS0, p_free: float = 0.3, p_occ: float = 0.8,
               hit_width_cells: int = 1) -> tuple[GridGeometry, npt.NDArray[np.float32]]:
-    """Fuse recorded laser scans (e.g. :func:`sogm_service.carmen.read_carmen`) offline.
+    """Fuse recorded laser scans (e.g. :func:`sogm_service.adapters.carmen.read_carmen`) offline.
 
     The device's no-return readings (``>= scan.max_range``) are dropped; readings beyond
     ``usable_range`` are free up to it.  The map is the axis-aligned grid around every beam end
     plus ``margin``; returns its geometry and the
     ``(H, W)`` float32 occupancy probabilities.  ``p_free``, ``p_occ`` and ``hit_width_cells``
-    go to :func:`sogm_service.laser.laser_ism`.
+    go to :func:`sogm_service.adapters.laser.laser_ism`.
     """
     isms = []
     for scan in scans:

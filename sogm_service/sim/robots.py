@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.geometry import Pose2D
+from sogm_service.core.geometry import Pose2D
 from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
 from sogm_service.sim.worlds import World
 

@@ -7,7 +7,8 @@ believes, odometry drift included): exactly the misalignment a real fleet's ISMs
 * :class:`TiltedLaser`: a 2-D laser pitched down by a few degrees.  A beam at horizontal range
   ``t`` is at height ``h - t tan(pitch)``; it stops at the first cell whose object reaches that
   height, or at the floor (``h / tan(pitch)``).  Floor returns are "no obstacle": the ISM takes
-  free space up to just short of the floor range and no hit (:func:`sogm_service.laser.laser_ism`).
+  free space up to just short of the floor range and no hit
+  (:func:`sogm_service.adapters.laser.laser_ism`).
   Gaussian range noise.
 * :class:`SemanticCamera`: a camera with a per-pixel semantic classifier, projected onto the
   ground: over its field-of-view footprint (near..far, +-hfov/2, cells not hidden behind objects
@@ -28,8 +29,8 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.laser import laser_ism
+from sogm_service.adapters.laser import laser_ism
+from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.sim.worlds import World
 
 FloatArray = npt.NDArray[np.float32]

@@ -1,6 +1,7 @@
 """Ground-truth worlds for the simulator, randomised by seed.
 
-A :class:`World` is a grid (its :class:`~sogm_service.geometry.GridGeometry` places it in the map
+A :class:`World` is a grid (its :class:`~sogm_service.core.geometry.GridGeometry` places it in
+the map
 frame, origin at (0, 0) with yaw 0) holding per cell
 
 * ``labels``: the ground-truth class index; ``classes[0]`` is always ``"unknown"`` (space the
@@ -27,7 +28,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.core.geometry import GridGeometry, Pose2D
 
 UNKNOWN = "unknown"
 

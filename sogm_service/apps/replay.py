@@ -1,7 +1,8 @@
 """``sogm-service replay carmen FILE``: a recorded laser log replayed into a map server.
 
 Each FLASER scan of the log (with its corrected pose) becomes the ISM of a laser inverse sensor
-model (free along each beam, occupied at the hit, unknown beyond; :mod:`sogm_service.laser`)
+model (free along each beam, occupied at the hit, unknown beyond;
+:mod:`sogm_service.adapters.laser`)
 published on ``ism/<robot>/laser/obstacle`` with its pose on ``pose/<robot>``, exactly as a
 live robot would.  Without ``--connect`` the server is embedded (in this process, on
 127.0.0.1); the resulting map is written as a PNG (and optionally ``.npy``).
@@ -67,15 +68,15 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
                   resolution: float = 0.05, limit: int | None = None, speed: float = 0.0,
                   robot: str = "carmen") -> ReplayResult:
     """Replay a log into the server at ``endpoint`` (or an embedded one); return the map."""
-    from sogm_service.carmen import CarmenStats, read_carmen
+    from sogm_service.adapters.carmen import CarmenStats, read_carmen
 
     stats = CarmenStats()
     scans = list(read_carmen(path, limit=limit, stats=stats))
     if endpoint is not None:
         return _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats)
-    from sogm_service.config import ServiceConfig
-    from sogm_service.server import MapServer
-    from sogm_service.zsession import free_tcp_endpoint
+    from sogm_service.service.config import ServiceConfig
+    from sogm_service.service.server import MapServer
+    from sogm_service.service.session import free_tcp_endpoint
 
     endpoint = free_tcp_endpoint()
     config = ServiceConfig.model_validate({"map": {"name": map_name, "resolution": resolution},
@@ -90,7 +91,7 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
 
 def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: float,
                  speed: float, robot: str, stats: Any) -> ReplayResult:
-    from sogm_service.client import MapClient
+    from sogm_service.service.client import MapClient
     from sogm_service.sim.fleet import replay_scans
 
     replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed)
@@ -132,7 +133,7 @@ def _bounds_window(scans: list[Any], resolution: float, margin: float = 10.0) ->
 def _write(result: ReplayResult, png: Path, npy: Path | None) -> None:
     import cv2
 
-    from sogm_service.render import probability_image
+    from sogm_service.apps.render import probability_image
 
     scale = max(1, math.floor(800 / max(result.probabilities.shape)))
     cv2.imwrite(str(png), probability_image(result.probabilities, scale=scale))

@@ -44,7 +44,8 @@ same kind; it prefers compact supercells and breaks the ties of homogeneous regi
   receiving supercell together; ``|c| D'(c)`` is the supercell's sum of squared deviations, which
   is additive over cells (plain variances of sets of different size are not).
 
-How they behave (``sogm-service eval supercells``, :mod:`sogm_service.evaluation`): the paper's
+How they behave (``sogm-service eval supercells``, :mod:`sogm_service.eval.segmentation`): the
+paper's
 rule never lets a zero-variance receiver grow without the contour term (``D(c_hat) < 0`` is
 impossible), and because the loser is not judged a cell can go back and forth between two
 supercells; the sweeps simply stop after ``iterations``.  It gives the lowest intra-cluster

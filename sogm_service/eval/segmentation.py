@@ -16,7 +16,8 @@
    / LSC the region size of the same edge.  At every count each algorithm runs a small grid of its
    own parameters and keeps the set minimising the scene mean of ``(1 - BR) + UE`` (Stutz et al.;
    one parameter set for all scenes, not one per scene).
-4. **Metrics** (:mod:`sogm_service.metrics`): Pureness (Eq. 12, on the classes), ICV and EV (on the
+4. **Metrics** (:mod:`sogm_service.eval.metrics`): Pureness (Eq. 12, on the classes), ICV and
+EV (on the
    probability stack), UE and BR (on ground-truth segments: the 4-connected components of the
    classes).
 5. **Outputs** in ``out_dir``: ``results.csv`` (every algorithm, scene and count with the chosen
@@ -43,8 +44,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import metrics
-from sogm_service.sevds import SevdsParams, sevds
+from sogm_service.core.sevds import SevdsParams, sevds
+from sogm_service.eval import metrics
 
 Labels = npt.NDArray[np.int32]
 Params = dict[str, float | int | str]

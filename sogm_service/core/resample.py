@@ -1,6 +1,6 @@
 """Resampling grids between geometries: nearest, bilinear and the paper's biodds (Eq. 3-5).
 
-Every function maps a grid given in one :class:`~sogm_service.geometry.GridGeometry` onto
+Every function maps a grid given in one :class:`~sogm_service.core.geometry.GridGeometry` onto
 another (any relative yaw, scale and offset).  Destination cells whose source position lies
 outside the source grid are *unknown* (P = 0.5, log-odds 0), never zero.
 
@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 
 Interp = Literal["nearest", "bilinear", "biodds"]
 INTERPOLATIONS: tuple[Interp, ...] = ("biodds", "bilinear", "nearest")
@@ -189,7 +189,7 @@ class TilePatch:
     """The part of an ISM that lands in one tile: cell block ``(u0, v0, w, h)`` and ``patch``.
 
     ``patch`` is int16 fixed log-odds, or float32 for biodds (OpenCV's float warp is ~4x faster
-    than its int16 one; :func:`sogm_service.logodds.bayes_update` rounds while adding).
+    than its int16 one; :func:`sogm_service.core.logodds.bayes_update` rounds while adding).
     """
 
     index: tuple[int, int]

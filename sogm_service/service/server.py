@@ -10,7 +10,7 @@ Threads and why:
   only the newest ISM per key waits and the replaced ones are counted as dropped.
 * Queries run on Zenoh's query threads and take the map lock only for the sampling itself, so
   they wait at most for the one ISM being fused, never for the backlog.
-* Persistence (tile store, checkpoints, eviction) lives in :mod:`sogm_service.persistence`.
+* Persistence (tile store, checkpoints, eviction) lives in :mod:`sogm_service.service.persistence`.
 """
 
 from __future__ import annotations
@@ -27,10 +27,16 @@ import numpy as np
 import zenoh
 from pydantic import BaseModel
 
-from sogm_service import codec, ingest, queries
-from sogm_service.config import ServiceConfig
-from sogm_service.matcher import Matcher
-from sogm_service.messages import (
+from sogm_service.core.tiles import TiledMap
+from sogm_service.service import pipeline as ingest
+from sogm_service.service import queries
+from sogm_service.service.config import ServiceConfig
+from sogm_service.service.matcher import Matcher
+from sogm_service.service.persistence import Persistence
+from sogm_service.service.session import open_session
+from sogm_service.service.stats import Stats
+from sogm_service.wire import codec
+from sogm_service.wire.messages import (
     ErrorReply,
     FusedRequest,
     InfoReply,
@@ -40,12 +46,8 @@ from sogm_service.messages import (
     SubmapRequest,
     SupercellRequest,
 )
-from sogm_service.persistence import Persistence
-from sogm_service.stats import Stats
-from sogm_service.tiles import TiledMap
-from sogm_service.zsession import open_session
 
-log = logging.getLogger("sogm_service.server")
+log = logging.getLogger("sogm_service.service.server")
 
 
 @dataclass(frozen=True, slots=True)

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.laser import laser_ism
+from sogm_service.adapters.laser import laser_ism
+from sogm_service.core.geometry import GridGeometry, Pose2D
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ def scan_ism(scan: LaserScan, resolution: float = 0.05,
              usable_range: float = DEFAULT_USABLE_RANGE, *, p_free: float = 0.3,
              p_occ: float = 0.8,
              hit_width_cells: int = 1) -> tuple[GridGeometry, npt.NDArray[np.float32]]:
-    """The ``obstacle`` ISM of one recorded scan (:func:`sogm_service.laser.laser_ism`).
+    """The ``obstacle`` ISM of one recorded scan (:func:`sogm_service.adapters.laser.laser_ism`).
 
     The device's no-return readings (``>= scan.max_range``) are dropped; readings beyond
     ``usable_range`` are free up to it.  Sensor-aligned grid at ``scan.pose``.

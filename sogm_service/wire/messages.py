@@ -1,6 +1,6 @@
 """Every message on the wire, as pydantic models (DESIGN.md section 4).
 
-Payloads are msgpack maps of these models' fields (see :mod:`sogm_service.codec`).  Arrays
+Payloads are msgpack maps of these models' fields (see :mod:`sogm_service.wire.codec`).  Arrays
 travel as :class:`WireArray`: raw little-endian bytes plus dtype and shape.  ISMs carry their
 cells as raw bytes whose layout is fixed by ``width``, ``height`` and ``encoding`` so that a
 robot in any language can produce one without a numpy-like array type.
@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationInfo, field
 from pydantic import model_validator as _model_validator
 from pydantic_core import PydanticCustomError
 
-from sogm_service.logodds import ENCODING_DTYPES, Encoding
+from sogm_service.core.logodds import ENCODING_DTYPES, Encoding
 
 REJECT_CODES: dict[str, str] = {
     "malformed_msgpack": "the payload is not valid msgpack",

@@ -1,7 +1,7 @@
 """The tile manager: which tile each robot is in, and which tiles the fleet needs (pure, no I/O).
 
 This is the paper's *tile publisher* (section III-E) on a fixed lattice
-(:class:`~sogm_service.geometry.TileLattice`, DESIGN.md section 3).  Unlike the paper, a switch
+(:class:`~sogm_service.core.geometry.TileLattice`, DESIGN.md section 3).  Unlike the paper, a switch
 moves no map content: every tile keeps its place in the map frame, and the switch only tells
 listeners (and the server's persistence) where each robot now works.
 
@@ -18,7 +18,7 @@ than the raw position keeps the ROI from flapping too; with ``r >= 1`` the neigh
 about to enter is always preloaded.  The fleet's ROI is the union over robots.
 
 Geo-referencing: when a datum is configured, each event carries the WGS-84 position of its tile's
-origin corner (:mod:`sogm_service.geodesy`).
+origin corner (:mod:`sogm_service.core.geodesy`).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sogm_service.geodesy import GeodeticLike, GeoPoint, LocalTangentPlane
-from sogm_service.geometry import Pose2D, TileLattice
+from sogm_service.core.geodesy import GeodeticLike, GeoPoint, LocalTangentPlane
+from sogm_service.core.geometry import Pose2D, TileLattice
 
 TileIndex = tuple[int, int]
 

@@ -14,7 +14,8 @@ Examples::
 rejected one is reported with its reason and left where it was.
 
 PNG export: one image per layer, probabilities as grey (free white, occupied black), unknown
-(log-odds exactly 0, or no tile) in a distinct blue tint (:mod:`sogm_service.render`), north up.
+(log-odds exactly 0, or no tile) in a distinct blue tint (:mod:`sogm_service.apps.render`),
+north up.
 ``.npy`` export: the stacked ``(N, H, W)`` int16 fixed-point log-odds (``logodds.SCALE`` units
 per nat, 0 = unknown), with a ``.json`` sidecar naming the layers, resolution and origin.
 """
@@ -36,9 +37,9 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geometry import TileLattice
-from sogm_service.tilestore import (
+from sogm_service.core import logodds
+from sogm_service.core.geometry import TileLattice
+from sogm_service.store.tilestore import (
     SUFFIX,
     StoredTile,
     StoreLockedError,
@@ -341,7 +342,7 @@ def _write_npy(region: Region, out: Path) -> list[Path]:
 def _write_pngs(region: Region, out: Path, scale: int) -> list[Path]:
     import cv2  # heavy; only export needs it
 
-    from sogm_service.render import probability_image
+    from sogm_service.apps.render import probability_image
 
     written: list[Path] = []
     used: set[str] = set()

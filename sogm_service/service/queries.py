@@ -14,10 +14,11 @@ from typing import Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.codec import DecodeError, unpack, validate
-from sogm_service.geometry import GridGeometry, window_geometry
-from sogm_service.messages import (
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, window_geometry
+from sogm_service.core.tiles import TiledMap
+from sogm_service.wire.codec import DecodeError, unpack, validate
+from sogm_service.wire.messages import (
     FusedReply,
     FusedRequest,
     GridReply,
@@ -29,7 +30,6 @@ from sogm_service.messages import (
     WindowRequest,
     WireArray,
 )
-from sogm_service.tiles import TiledMap
 
 R = TypeVar("R", bound=WindowRequest)
 
@@ -87,7 +87,7 @@ def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[str]:
 
 def _placement(tiled: TiledMap, window: GridGeometry, layers: list[str],
                stamp: float) -> dict[str, Any]:
-    """The fields every window reply shares (:class:`~sogm_service.messages.WindowReply`)."""
+    """The fields every window reply shares (:class:`~sogm_service.wire.messages.WindowReply`)."""
     return dict(map=tiled.name, frame=tiled.frame, stamp=stamp, resolution=window.resolution,
                 origin=PoseModel(x=window.origin.x, y=window.origin.y, yaw=window.origin.yaw),
                 width=window.width, height=window.height, layers=layers)
@@ -145,8 +145,8 @@ def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry, lay
     Each node is the paper's triple (T_c, L_c, P_c): centroid in the map frame, adjacent
     supercells, and the Eq. 11 feature vector (summed log-odds per layer, plus mean P).
     """
-    from sogm_service.sevds import SevdsParams  # numba: imported on first use, not at start
-    from sogm_service.supercells import extract_supercells
+    from sogm_service.core.sevds import SevdsParams  # numba: imported on first use, not at start
+    from sogm_service.core.supercells import extract_supercells
 
     params = SevdsParams(block_size=req.block_size, levels=req.levels, bins=req.bins,
                          iterations=req.iterations, gamma=req.gamma, criterion=req.criterion)

@@ -78,10 +78,10 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
              rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
              realtime: bool = True, speed: float = 3.0, progress: bool = True) -> DemoResult:
     """Run the whole demo; returns its summary (and writes every file into ``out``)."""
-    from sogm_service.client import MapClient
-    from sogm_service.server import MapServer
+    from sogm_service.service.client import MapClient
+    from sogm_service.service.server import MapServer
+    from sogm_service.service.session import free_tcp_endpoint
     from sogm_service.sim import tabletop_world, warehouse_world
-    from sogm_service.zsession import free_tcp_endpoint
 
     started = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
@@ -104,7 +104,7 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
 
 
 def _config(resolution: float, endpoint: str, out: Path) -> Any:
-    from sogm_service.config import ServiceConfig
+    from sogm_service.service.config import ServiceConfig
 
     return ServiceConfig.model_validate({
         "map": {"name": "demo", "resolution": resolution},
@@ -119,8 +119,8 @@ class _FleetWatcher:
     """Follows robot poses and tile events like any other client of the service."""
 
     def __init__(self, client: Any, events_path: Path) -> None:
-        from sogm_service import codec
-        from sogm_service.messages import PoseMessage
+        from sogm_service.wire import codec
+        from sogm_service.wire.messages import PoseMessage
 
         self.poses: dict[str, PoseMessage] = {}
         self.events = 0
@@ -249,7 +249,7 @@ def _write_png(path: Path, img: npt.NDArray[np.uint8]) -> str:
 
 
 def _write_layers(sub: Any, out: Path) -> list[str]:
-    from sogm_service.render import dominant_class_image, probability_image
+    from sogm_service.apps.render import dominant_class_image, probability_image
 
     p = sub.probabilities()
     files = [_write_png(out / f"layer_{layer.replace('/', '_')}.png", probability_image(p[k]))
@@ -266,7 +266,7 @@ def obstacle_layers(layers: list[str]) -> list[str]:
 def _write_fused(client: Any, window: dict[str, Any], layers: list[str],
                  out: Path) -> list[str]:
     """Eq. 6 over the obstacle-like layers: P_B (same evidence from several sensors) and P_M."""
-    from sogm_service.render import probability_image
+    from sogm_service.apps.render import probability_image
 
     files = []
     for method in ("bayes", "max"):
@@ -278,7 +278,7 @@ def _write_fused(client: Any, window: dict[str, Any], layers: list[str],
 
 def _ground_truth_image(world: Any, layers: list[str]) -> npt.NDArray[np.uint8]:
     """Ground truth in the colours ``classes.png`` gives the same class (walls as obstacle)."""
-    from sogm_service.render import UNKNOWN_BGR, class_colors
+    from sogm_service.apps.render import UNKNOWN_BGR, class_colors
 
     palette = class_colors(len(layers))
     names = [n.rsplit("/", 1)[-1] for n in layers]
@@ -293,7 +293,7 @@ def _ground_truth_image(world: Any, layers: list[str]) -> npt.NDArray[np.uint8]:
 def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Path,
                    files: list[str]) -> dict[str, float]:
     """A rotated window around each robot at 2x the map's cell size; timed queries."""
-    from sogm_service.render import dominant_class_image
+    from sogm_service.apps.render import dominant_class_image
 
     timings: list[float] = []
     res = 2 * map_res
@@ -316,7 +316,7 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
 def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path,
                       files: list[str]) -> int | None:
     """The SEVDS graph of a 128 x 128 cell window around the first robot, over the fused map."""
-    from sogm_service.cli import draw_graph
+    from sogm_service.apps.cli import draw_graph
 
     if not watcher.poses:
         return None

@@ -1,7 +1,7 @@
 """The tiled semantic map: a stack of log-odds layers kept in tiles of a fixed lattice.
 
 DESIGN.md section 3: tile ``(i, j)`` holds all layers as one ``(N, T, T)`` int16 array of
-fixed-point log-odds (:mod:`sogm_service.logodds`); a layer is added when its first ISM
+fixed-point log-odds (:mod:`sogm_service.core.logodds`); a layer is added when its first ISM
 arrives; tiles are created on first write.  Writing an ISM resamples it straight into each tile
 it overlaps (no map-sized intermediate), so the cost is proportional to the ISM's footprint.
 
@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.resample import (
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.resample import (
     Interp,
     informative,
     resample_stack,
@@ -187,7 +187,7 @@ class TiledMap:
         The increments are resampled into every tile the ISM overlaps (``interp``, outside the
         ISM -> 0, i.e. untouched) and added with the clamp.  Returns the tiles written.
         Per-tile work is kept to the slice or warp and the add: the ISM's alignment and inverse
-        transform are worked out once (:func:`sogm_service.resample.tile_patches`).
+        transform are worked out once (:func:`sogm_service.core.resample.tile_patches`).
         """
         lid = self.layer_id(layer, create=True)
         touched = []

@@ -61,9 +61,9 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geodesy import GeodeticLike, GeoPoint, LocalTangentPlane
-from sogm_service.tilemanager import TileIndex, tile_token
+from sogm_service.core import logodds
+from sogm_service.core.geodesy import GeodeticLike, GeoPoint, LocalTangentPlane
+from sogm_service.core.tilemanager import TileIndex, tile_token
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ class StoredTile:
     data: Fixed
 
     def as_loader_result(self) -> tuple[list[str], Fixed, float]:
-        """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.tiles.Loader`."""
+        """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.core.tiles.Loader`."""
         return list(self.header.layers), self.data, self.header.stamp
 
 
@@ -549,7 +549,7 @@ class TileStore:
         return None if got is None else got[1]
 
     def loader(self, i: int, j: int) -> tuple[list[str], Fixed, float] | None:
-        """:meth:`load` in the shape of :data:`sogm_service.tiles.Loader`."""
+        """:meth:`load` in the shape of :data:`sogm_service.core.tiles.Loader`."""
         tile = self.load(i, j)
         return None if tile is None else tile.as_loader_result()
 

@@ -19,12 +19,12 @@ from typing import Any
 
 # name -> (module, function taking argv and returning an exit code, help)
 _DELEGATED: dict[str, tuple[str, str, str]] = {
-    "tiles": ("sogm_service.tiletool", "main", "list, export and import stored tiles"),
-    "eval": ("sogm_service.evaluation", "main",
+    "tiles": ("sogm_service.apps.tiletool", "main", "list, export and import stored tiles"),
+    "eval": ("sogm_service.eval.segmentation", "main",
              "the paper's evaluation: eval supercells (SEVDS vs SEEDS/SLIC/SLICO/LSC)"),
-    "demo": ("sogm_service.demo", "main",
+    "demo": ("sogm_service.apps.demo", "main",
              "embedded demo: a server and a simulated fleet on 127.0.0.1"),
-    "replay": ("sogm_service.replay", "main", "replay a CARMEN laser log into a map"),
+    "replay": ("sogm_service.apps.replay", "main", "replay a CARMEN laser log into a map"),
     "bench": ("sogm_service.bench", "main", "the performance suite"),
 }
 
@@ -112,14 +112,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Processes that fuse or sample for long: their large temporaries are kept on the heap
-# (:mod:`sogm_service.allocator`), which the short-lived commands do not need.
+# (:mod:`sogm_service.service.allocator`), which the short-lived commands do not need.
 _LONG_RUNNING = frozenset({"serve", "demo", "replay", "bench"})
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in _LONG_RUNNING:
-        from sogm_service.allocator import keep_large_allocations
+        from sogm_service.service.allocator import keep_large_allocations
 
         keep_large_allocations()
     parser = build_parser()
@@ -156,7 +156,7 @@ def wait_for(stop: threading.Event) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from sogm_service.config import ConfigError, load_config
+    from sogm_service.service.config import ConfigError, load_config
 
     try:
         config = load_config(args.config)
@@ -173,7 +173,7 @@ def _serve(args: argparse.Namespace) -> int:
     if args.storage:
         config = config.model_copy(
             update={"storage": config.storage.model_copy(update={"directory": args.storage})})
-    from sogm_service.server import MapServer
+    from sogm_service.service.server import MapServer
 
     stop = stop_on_signal()
     server = MapServer(config).start()
@@ -192,14 +192,14 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace) -> Any:
-    from sogm_service.client import MapClient
+    from sogm_service.service.client import MapClient
 
     return MapClient.connect(args.connect, map_name=args.map, prefix=args.prefix,
                              timeout=args.timeout)
 
 
 def _query(args: argparse.Namespace) -> int:
-    from sogm_service.client import ClientError
+    from sogm_service.service.client import ClientError
 
     with _client(args) as client:
         try:
@@ -260,7 +260,7 @@ def draw_graph(reply: Any, fused: Any, scale: int = 3) -> Any:
     """The supercell graph of a reply (with labels) over a fused map of the same window."""
     import numpy as np
 
-    from sogm_service.render import supercell_overlay
+    from sogm_service.apps.render import supercell_overlay
 
     g = fused.geometry
     to_cell = g.world_to_cell()
@@ -288,7 +288,7 @@ def _write_grid_outputs(result: Any, png: Path | None, npy: Path | None) -> None
     import cv2
     import numpy as np
 
-    from sogm_service.render import probability_image
+    from sogm_service.apps.render import probability_image
 
     if npy is not None:
         np.save(npy, result.data)
@@ -310,7 +310,7 @@ def _write_grid_outputs(result: Any, png: Path | None, npy: Path | None) -> None
 def _publish_ism(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from sogm_service.geometry import Pose2D
+    from sogm_service.core.geometry import Pose2D
 
     data = _read_grid(args.file)
     with _client(args) as client:
@@ -336,7 +336,7 @@ def _read_grid(path: Path) -> Any:
 
 
 def _schemas(args: argparse.Namespace) -> int:
-    from sogm_service import codec
+    from sogm_service.wire import codec
 
     if args.check:
         stale = codec.stale_schemas(args.out)
@@ -352,8 +352,8 @@ def _schemas(args: argparse.Namespace) -> int:
 
 
 def _router(args: argparse.Namespace) -> int:
-    from sogm_service.config import ZenohSettings
-    from sogm_service.zsession import open_session
+    from sogm_service.service.config import ZenohSettings
+    from sogm_service.service.session import open_session
 
     settings = ZenohSettings(mode="router", listen=args.listen or ["tcp/0.0.0.0:7447"],
                              config_file=args.config)

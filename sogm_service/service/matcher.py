@@ -1,7 +1,7 @@
 """The scan-matching stage of the server: per-source policy, stats and reports (service layer).
 
 For each ISM key expression whose ``[ism.matching] mode`` is not ``off``, every ISM is matched
-against the map around its claimed pose (:func:`sogm_service.ingest.align`, paper section
+against the map around its claimed pose (:func:`sogm_service.service.pipeline.align`, paper section
 III-C.2) before it is fused:
 
 * ``correct``: an accepted match moves the ISM to the corrected pose before fusion; a failed
@@ -9,7 +9,7 @@ III-C.2) before it is fused:
   ``match_<reason>``).
 * ``report``: the ISM is always fused as claimed; the correction is only published.
 
-Either way the outcome goes out as a :class:`~sogm_service.messages.MatchReport` on
+Either way the outcome goes out as a :class:`~sogm_service.wire.messages.MatchReport` on
 ``<prefix>/<map>/matching/<key>`` so a localisation stack can use it.  While the map has too
 little around an ISM (the first ISMs of a layer) matching is skipped and the ISM fused.
 """
@@ -25,13 +25,14 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from sogm_service import codec, ingest
-from sogm_service.config import MatchingSettings, ServiceConfig
-from sogm_service.geometry import GridGeometry
-from sogm_service.matching import MatchParams
-from sogm_service.messages import IsmMessage, MatchReport, PoseModel
-from sogm_service.stats import Stats
-from sogm_service.tiles import TiledMap
+from sogm_service.core.geometry import GridGeometry
+from sogm_service.core.matching import MatchParams
+from sogm_service.core.tiles import TiledMap
+from sogm_service.service import pipeline as ingest
+from sogm_service.service.config import MatchingSettings, ServiceConfig
+from sogm_service.service.stats import Stats
+from sogm_service.wire import codec
+from sogm_service.wire.messages import IsmMessage, MatchReport, PoseModel
 
 MIN_KNOWN_CELLS = 200
 

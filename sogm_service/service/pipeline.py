@@ -1,6 +1,6 @@
 """From a validated ISM message to a Bayesian update of the tiled map (pure, no I/O).
 
-Flow (DESIGN.md section 2): decoded/validated :class:`~sogm_service.messages.IsmMessage` ->
+Flow (DESIGN.md section 2): decoded/validated :class:`~sogm_service.wire.messages.IsmMessage` ->
 fixed log-odds increments (256-entry lookup table for 8-bit encodings) -> resampled from the
 ISM's own pose and resolution into each tile it overlaps -> Eq. 1 add-then-clamp.
 """
@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D
-from sogm_service.matching import (
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.matching import (
     MatchParams,
     MatchResult,
     corrected_geometry,
@@ -25,9 +25,9 @@ from sogm_service.matching import (
     match_window,
     prior_matrix,
 )
-from sogm_service.messages import IsmMessage
-from sogm_service.resample import Interp, resample_logodds
-from sogm_service.tiles import TiledMap, TileIndex
+from sogm_service.core.resample import Interp, resample_logodds
+from sogm_service.core.tiles import TiledMap, TileIndex
+from sogm_service.wire.messages import IsmMessage
 
 _LAYER_NAME = re.compile(r"^[A-Za-z0-9_\-./]{1,128}$")
 

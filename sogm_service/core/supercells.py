@@ -1,6 +1,6 @@
 """Supercells -> topometric graph (paper section III-D.2, Fig. 6, Eq. 11).
 
-:func:`extract_supercells` runs SEVDS (:mod:`sogm_service.sevds`, Eq. 7-10) on an N-layer SOGM
+:func:`extract_supercells` runs SEVDS (:mod:`sogm_service.core.sevds`, Eq. 7-10) on an N-layer SOGM
 window and turns the label image into the paper's triples ``C = (T_c, L_c, P_c)``:
 
 * ``T_c`` -- the centroid in map coordinates: the mean continuous cell coordinate ``(u, v)`` of the
@@ -12,7 +12,7 @@ window and turns the label image into the paper's triples ``C = (T_c, L_c, P_c)`
   the area and is hard to read on its own.
 
 The input is either a float stack of probabilities in [0, 1] or the map's own int16 fixed-point
-log-odds (:mod:`sogm_service.logodds`); in the second case the log-odds sums are exact.  For a
+log-odds (:mod:`sogm_service.core.logodds`); in the second case the log-odds sums are exact.  For a
 probability stack the log-odds are taken after the map's clamp ``[eps0, 1 - eps0]``, so a cell of
 probability 0 or 1 adds a finite amount, as it would inside the map.  Pure numpy, no I/O.
 """
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry
-from sogm_service.sevds import SevdsParams, SevdsResult, sevds
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry
+from sogm_service.core.sevds import SevdsParams, SevdsResult, sevds
 
 F64 = npt.NDArray[np.float64]
 

@@ -41,16 +41,16 @@ Pipeline of :func:`match_ism` (all in cell units, the ISM already resampled to m
    the quality check, never with a random correction.
 
 Conventions.  The ISM and window arrays are indexed ``[v, u]`` like every grid here
-(:mod:`sogm_service.geometry`); continuous cell coordinates put cell centres on integers.
+(:mod:`sogm_service.core.geometry`); continuous cell coordinates put cell centres on integers.
 ``prior`` is the 3x3 map ISM cell -> window cell implied by the claimed pose
 (:func:`prior_matrix`); ``MatchResult.matrix`` is the estimated map ISM cell -> window cell.
 The *correction* ``C = matrix @ inv(prior)`` acts in window cells; it is reported as the
 displacement ``(dx, dy)`` of the ISM's centre, the rotation ``dtheta`` (rad, counter-clockwise
 in the grid's ``u, v`` axes = the map frame's x, y axes when the window is axis-aligned) and the
 scale about that centre.  :func:`corrected_geometry` turns it into the ISM's corrected
-:class:`~sogm_service.geometry.GridGeometry` so the server simply resamples the ISM with it.
+:class:`~sogm_service.core.geometry.GridGeometry` so the server simply resamples the ISM with it.
 
-Log-odds inputs: integer arrays are the fixed point of :mod:`sogm_service.logodds`
+Log-odds inputs: integer arrays are the fixed point of :mod:`sogm_service.core.logodds`
 (``1 / SCALE`` nat), floating arrays are nats.
 """
 
@@ -66,8 +66,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service import logodds
-from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
 
 Matrix3 = npt.NDArray[np.float64]
 Image = npt.NDArray[np.uint8]

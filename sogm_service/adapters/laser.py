@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.geometry import GridGeometry, Pose2D
+from sogm_service.core.geometry import GridGeometry, Pose2D
 
 UNKNOWN_P = 0.5
 

@@ -2,7 +2,7 @@
 
 No pickle, no ext types: a payload is a msgpack map of the model's fields, bytes as msgpack
 ``bin``.  Decoding never raises anything but :class:`DecodeError`, whose ``code`` names the
-reason (see :data:`sogm_service.messages.REJECT_CODES`) so that the server can count rejections
+reason (see :data:`sogm_service.wire.messages.REJECT_CODES`) so that the server can count rejections
 per reason.
 """
 
@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from sogm_service.messages import REJECT_CODES, SCHEMA_MODELS
+from sogm_service.wire.messages import REJECT_CODES, SCHEMA_MODELS
 
 M = TypeVar("M", bound=BaseModel)
 

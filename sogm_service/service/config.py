@@ -14,8 +14,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from sogm_service import logodds
-from sogm_service.messages import GeodeticFix, InterpName
+from sogm_service.core import logodds
+from sogm_service.wire.messages import GeodeticFix, InterpName
 
 
 class _Section(BaseModel):

@@ -1,15 +1,15 @@
 """Where the map meets storage and the fleet (service layer, DESIGN.md section 3).
 
-* **Tile store** (:mod:`sogm_service.tilestore`): on start the store directory is indexed and
+* **Tile store** (:mod:`sogm_service.store.tilestore`): on start the store directory is indexed and
   every stored tile is known to the map (loaded on first touch).  Dirty tiles are checkpointed
   every ``checkpoint_interval_s``: a copy of the tile (the paper's double buffer) goes to the
-  background :class:`~sogm_service.tilestore.TileWriter`, so ingestion never waits for disk.
+  background :class:`~sogm_service.store.tilestore.TileWriter`, so ingestion never waits for disk.
   A SIGKILL loses at most what changed since the last checkpoint; shutdown flushes everything.
 * **Memory budget**: after each ISM and each checkpoint, least recently used tiles outside every
   robot's region of interest are evicted until the resident tiles fit the budget.  A dirty tile
   is snapshotted to the writer first; the writer's loader serves a snapshot still waiting for
   disk, so an evicted tile never comes back stale.
-* **Tile manager** (:mod:`sogm_service.tilemanager`): follows robot poses (``pose/**``, or the
+* **Tile manager** (:mod:`sogm_service.core.tilemanager`): follows robot poses (``pose/**``, or the
   centre of a robot's ISMs while it sends no poses), publishes tile-switch events on
   ``<prefix>/<map>/events/tile``, preloads tiles entering a region of interest and checkpoints
   those that left every region.  ``<prefix>/<map>/robots`` answers late joiners with each
@@ -31,14 +31,12 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from sogm_service import codec
-from sogm_service.config import ServiceConfig
-from sogm_service.geometry import TileLattice
-from sogm_service.messages import GeodeticFix, PoseModel, RobotTilesReply, TileEvent
-from sogm_service.stats import Stats
-from sogm_service.tilemanager import TileManager, TileSwitchEvent
-from sogm_service.tiles import TiledMap, TileIndex
-from sogm_service.tilestore import (
+from sogm_service.core.geometry import TileLattice
+from sogm_service.core.tilemanager import TileManager, TileSwitchEvent
+from sogm_service.core.tiles import TiledMap, TileIndex
+from sogm_service.service.config import ServiceConfig
+from sogm_service.service.stats import Stats
+from sogm_service.store.tilestore import (
     StoreLockedError,
     TileFormatError,
     TileStore,
@@ -46,8 +44,10 @@ from sogm_service.tilestore import (
     tile_from_bytes,
     tile_to_bytes,
 )
+from sogm_service.wire import codec
+from sogm_service.wire.messages import GeodeticFix, PoseModel, RobotTilesReply, TileEvent
 
-log = logging.getLogger("sogm_service.persistence")
+log = logging.getLogger("sogm_service.service.persistence")
 
 Guard = Callable[[str, Callable[[zenoh.Query], Any]], Callable[[zenoh.Query], None]]
 LoaderResult = tuple[list[str], npt.NDArray[np.int16], float]

@@ -1,4 +1,5 @@
-"""Opening Zenoh sessions from :class:`~sogm_service.config.ZenohSettings` (service layer)."""
+"""Opening Zenoh sessions from :class:`~sogm_service.service.config.ZenohSettings` (service
+layer)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from sogm_service.config import ZenohSettings
+from sogm_service.service.config import ZenohSettings
 
 
 def make_config(settings: ZenohSettings) -> zenoh.Config:

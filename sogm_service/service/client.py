@@ -1,0 +1,280 @@
+"""Python client of a sogm-service map server.
+
+>>> from sogm_service.client import MapClient
+>>> with MapClient.connect("tcp/127.0.0.1:7447", map_name="default") as client:
+...     sub = client.submap(x=0, y=0, width=10, height=10, resolution=0.1)
+...     sub.probabilities().shape            # (layers, rows, cols)
+
+Results carry their geometry so they can be placed without guessing; error replies raise
+:class:`ServiceError` (with the server's ``code`` and the ``parameter`` at fault) and silence
+raises :class:`QueryTimeoutError`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+import zenoh
+from pydantic import BaseModel
+
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.service.config import ServiceConfig, ZenohSettings
+from sogm_service.service.session import loopback_settings, open_session
+from sogm_service.wire import codec
+from sogm_service.wire.messages import (
+    ErrorReply,
+    FusedReply,
+    GeodeticFix,
+    GridReply,
+    InfoReply,
+    IsmMessage,
+    PoseMessage,
+    PoseModel,
+    RobotTilesReply,
+    StatsReply,
+    SupercellReply,
+    TileEvent,
+)
+
+M = TypeVar("M", bound=BaseModel)
+
+DEFAULT_TIMEOUT_S = 5.0
+
+
+class ClientError(RuntimeError):
+    """Base of every error the client raises."""
+
+
+class ServiceError(ClientError):
+    """The server refused the request: ``code`` (machine-readable), ``parameter`` at fault."""
+
+    def __init__(self, code: str, message: str, parameter: str | None = None) -> None:
+        super().__init__(f"[{code}] {message}")
+        self.code = code
+        self.message = message
+        self.parameter = parameter
+
+
+class QueryTimeoutError(ClientError):
+    """No server answered within the timeout."""
+
+
+@dataclass(frozen=True)
+class GridResult:
+    """A sub-map or fused map: ``data`` is ``(layers, H, W)`` (fused: ``(H, W)``)."""
+
+    geometry: GridGeometry
+    layers: list[str]
+    encoding: str
+    data: npt.NDArray[Any]
+    stamp: float
+    method: str | None = None
+
+    def probabilities(self) -> npt.NDArray[np.float32]:
+        """The cells as probabilities whatever the reply encoding (unknown -> 0.5)."""
+        return logodds.decode_to_prob(self.data, self.encoding)
+
+
+def _grid_result(reply: GridReply | FusedReply) -> GridResult:
+    geometry = GridGeometry(reply.resolution, reply.width, reply.height,
+                            Pose2D(reply.origin.x, reply.origin.y, reply.origin.yaw))
+    method = reply.method if isinstance(reply, FusedReply) else None
+    return GridResult(geometry, list(reply.layers), reply.encoding, reply.data.array(),
+                      reply.stamp, method)
+
+
+class MapClient:
+    """Queries and publishes against one map (``<prefix>/<map>/...``) over a Zenoh session."""
+
+    def __init__(self, session: zenoh.Session, map_name: str = "default", prefix: str = "sogm",
+                 timeout: float = DEFAULT_TIMEOUT_S, owns_session: bool = False) -> None:
+        self.session = session
+        self.map_name = map_name
+        self.prefix = prefix.strip("/")
+        self.timeout = timeout
+        self._owns_session = owns_session
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    @classmethod
+    def connect(cls, endpoint: str | None = None, map_name: str = "default",
+                prefix: str = "sogm", timeout: float = DEFAULT_TIMEOUT_S,
+                zenoh_settings: ZenohSettings | None = None) -> MapClient:
+        """Open an own session (closed by :meth:`close`): to ``endpoint`` as a client, or with
+        the given settings."""
+        settings = zenoh_settings or loopback_settings(connect=endpoint, mode="client")
+        return cls(open_session(settings), map_name, prefix, timeout, owns_session=True)
+
+    @classmethod
+    def from_config(cls, config: ServiceConfig, timeout: float = DEFAULT_TIMEOUT_S,
+                    session: zenoh.Session | None = None) -> MapClient:
+        """A client for the map a service config describes (its own session unless given)."""
+        owns = session is None
+        s = session if session is not None else open_session(config.zenoh)
+        return cls(s, config.map.name, config.prefix, timeout, owns_session=owns)
+
+    def close(self) -> None:
+        for pub in self._publishers.values():
+            pub.undeclare()
+        self._publishers.clear()
+        if self._owns_session:
+            self.session.close()
+
+    def __enter__(self) -> MapClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- queries --------------------------------------------------------------------------
+    def key(self, *parts: str) -> str:
+        return "/".join([self.prefix, self.map_name, *parts])
+
+    def get_raw(self, key: str, params: dict[str, Any] | None = None,
+                timeout: float | None = None) -> bytes:
+        """One reply's payload from ``key`` (error replies raise :class:`ServiceError`)."""
+        selector = key
+        if params:
+            selector += "?" + ";".join(f"{k}={_param(v)}" for k, v in params.items()
+                                      if v is not None)
+        for reply in self.session.get(selector, timeout=timeout or self.timeout):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            if reply.err is not None:
+                raise _service_error(reply.err.payload.to_bytes())
+        raise QueryTimeoutError(f"no reply from {selector} within {timeout or self.timeout} s")
+
+    def _get(self, cls: type[M], name: str, params: dict[str, Any] | None = None) -> M:
+        return codec.decode(cls, self.get_raw(self.key(name), params))
+
+    def submap(self, *, x: float = 0.0, y: float = 0.0, yaw: float = 0.0, width: float = 10.0,
+               height: float = 10.0, resolution: float | None = None,
+               layers: list[str] | None = None, interp: str = "biodds",
+               encoding: str = "prob_f32") -> GridResult:
+        """The chosen layers (default all) resampled into a window centred on ``(x, y)``."""
+        params = dict(x=x, y=y, yaw=yaw, width=width, height=height, resolution=resolution,
+                      layers=layers, interp=interp, encoding=encoding)
+        return _grid_result(self._get(GridReply, "submap", params))
+
+    def fused(self, *, method: str = "bayes", x: float = 0.0, y: float = 0.0, yaw: float = 0.0,
+              width: float = 10.0, height: float = 10.0, resolution: float | None = None,
+              layers: list[str] | None = None, interp: str = "biodds",
+              encoding: str = "prob_f32") -> GridResult:
+        """Eq. 6 over the chosen layers: ``bayes`` (P_B) or ``max`` (P_M)."""
+        params = dict(method=method, x=x, y=y, yaw=yaw, width=width, height=height,
+                      resolution=resolution, layers=layers, interp=interp, encoding=encoding)
+        return _grid_result(self._get(FusedReply, "fused", params))
+
+    def supercells(self, **params: Any) -> SupercellReply:
+        """The SEVDS topometric graph of a window (same window parameters + SEVDS's)."""
+        return self._get(SupercellReply, "supercells", params)
+
+    def info(self) -> InfoReply:
+        return self._get(InfoReply, "info")
+
+    def stats(self) -> StatsReply:
+        return self._get(StatsReply, "stats")
+
+    def robots(self) -> RobotTilesReply:
+        """Each robot's current tile (its last tile-switch event)."""
+        return self._get(RobotTilesReply, "robots")
+
+    def tiles(self, i: int | None = None, j: int | None = None,
+              timeout: float | None = None) -> dict[tuple[int, int], bytes]:
+        """Whole tiles in the store's file format (:mod:`sogm_service.store.tilestore`): one
+        tile, or
+        every tile of the map when ``i``/``j`` are omitted."""
+        key = self.key("tiles", "**") if i is None or j is None else \
+            self.key("tiles", str(i), str(j))
+        out: dict[tuple[int, int], bytes] = {}
+        for reply in self.session.get(key, timeout=timeout or self.timeout):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).rsplit("/", 2)
+            out[(int(parts[1]), int(parts[2]))] = reply.ok.payload.to_bytes()
+        return out
+
+    def subscribe_tile_events(self, callback: Callable[[TileEvent], None]) -> zenoh.Subscriber:
+        """Call ``callback`` with every tile-switch event (undeclare the returned subscriber
+        or close the client to stop)."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(codec.decode(TileEvent, sample.payload.to_bytes()))
+        return self.session.declare_subscriber(self.key("events", "tile"), on_sample)
+
+    def servers(self, timeout: float | None = None) -> list[str]:
+        """Ids of the live servers of this map (liveliness tokens)."""
+        key = self.key("@server", "*")
+        return [str(r.ok.key_expr).rsplit("/", 1)[-1]
+                for r in self.session.liveliness().get(key, timeout=timeout or self.timeout)
+                if r.ok is not None]
+
+    # -- publishing -----------------------------------------------------------------------
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        pub = self._publishers.get(key)
+        if pub is None:
+            # BLOCK: the default DROP loses large messages under load (DESIGN.md section 4).
+            pub = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK)
+            self._publishers[key] = pub
+        return pub
+
+    def publish_ism(self, key: str, data: npt.NDArray[Any], *, resolution: float,
+                    origin: Pose2D | None = None, encoding: str | None = None,
+                    layer: str | None = None, frame: str = "map", stamp: float = 0.0,
+                    robot: str | None = None) -> IsmMessage:
+        """Publish an ISM grid on ``key`` (e.g. ``ism/robot1/laser/obstacle``).
+
+        ``encoding`` defaults from the dtype: uint8 -> prob_u8, int8 -> occupancy_i8,
+        float -> prob_f32.
+        """
+        origin = origin or Pose2D()
+        arr = np.ascontiguousarray(data)
+        enc = encoding or _encoding_of(arr)
+        dtype = logodds.ENCODING_DTYPES[logodds.Encoding(enc)]
+        msg = IsmMessage(layer=layer, frame=frame, stamp=stamp, robot=robot,
+                         resolution=resolution,
+                         origin=PoseModel(x=origin.x, y=origin.y, yaw=origin.yaw),
+                         width=arr.shape[1], height=arr.shape[0], encoding=enc,
+                         data=arr.astype(dtype.newbyteorder("<")).tobytes())
+        self._publisher(key).put(codec.encode(msg))
+        return msg
+
+    def publish_raw(self, key: str, payload: bytes) -> None:
+        self._publisher(key).put(payload)
+
+    def publish_pose(self, robot: str, x: float, y: float, yaw: float = 0.0, *,
+                     stamp: float = 0.0, frame: str = "map", key_prefix: str = "pose",
+                     fix: GeodeticFix | None = None) -> None:
+        msg = PoseMessage(robot=robot, frame=frame, stamp=stamp, x=x, y=y, yaw=yaw, fix=fix)
+        self._publisher(f"{key_prefix}/{robot}").put(codec.encode(msg))
+
+
+def _encoding_of(arr: npt.NDArray[Any]) -> str:
+    if arr.dtype == np.uint8:
+        return "prob_u8"
+    if arr.dtype == np.int8:
+        return "occupancy_i8"
+    if np.issubdtype(arr.dtype, np.floating):
+        return "prob_f32"
+    raise ValueError(f"cannot infer an ISM encoding from dtype {arr.dtype}")
+
+
+def _param(v: Any) -> str:
+    if isinstance(v, (list, tuple)):
+        return ",".join(str(x) for x in v)
+    if isinstance(v, float) and math.isfinite(v):
+        return repr(v)
+    return str(v)
+
+
+def _service_error(payload: bytes) -> ServiceError:
+    try:
+        err = codec.decode(ErrorReply, payload)
+    except codec.DecodeError:
+        return ServiceError("unknown", payload[:200].decode("utf-8", "replace"))
+    return ServiceError(err.code, err.message, err.parameter)
