@@ -5,13 +5,8 @@ path stable and gathers what a client program needs in one place.
 """
 
 from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.service.client import (
-    ClientError,
-    GridResult,
-    MapClient,
-    QueryTimeoutError,
-    ServiceError,
-)
+from sogm_service.service.client import GridResult, MapClient
+from sogm_service.wire.errors import ClientError, QueryTimeoutError, ServiceError
 
 __all__ = ["ClientError", "GridGeometry", "GridResult", "MapClient", "Pose2D",
            "QueryTimeoutError", "ServiceError"]

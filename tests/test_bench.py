@@ -17,10 +17,6 @@ from sogm_service.bench import core, registry
 
 pytestmark = pytest.mark.integration
 
-# Rows that depend on other modules' timing functions may say "not available".
-OPTIONAL = {"sevds_256x256x3", "scan_match_256"}
-
-
 def _run(tmp_path: Path, *names: str) -> dict:
     out = tmp_path / "bench.json"
     proc = subprocess.run(
@@ -33,9 +29,7 @@ def _run(tmp_path: Path, *names: str) -> dict:
 
 def _check_row(row: dict) -> None:
     assert row["target"], row
-    if row["note"].startswith("not available"):
-        assert row["name"] in OPTIONAL, row
-        return
+    assert not row["note"].startswith(("not available", "error")), row
     for key in ("ours", "baseline", "ratio"):
         assert isinstance(row[key], float) and row[key] > 0, (key, row)
     assert row["unit"] and row["baseline_name"], row

@@ -16,10 +16,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel
 
-from sogm_service.wire import codec, messages
+from sogm_service.wire import codec, limits
 from sogm_service.wire.codec import DecodeError
+from sogm_service.wire.errors import DECODE_CODES
 from sogm_service.wire.messages import (
-    REJECT_CODES,
     SCHEMA_MODELS,
     ErrorReply,
     FusedReply,
@@ -156,7 +156,7 @@ def reject(model: type[BaseModel], payload: bytes, code: str,
     with pytest.raises(DecodeError) as info:
         codec.decode(model, payload, context=context)
     assert info.value.code == code, str(info.value)
-    assert code in REJECT_CODES
+    assert code in DECODE_CODES
     assert str(info.value)  # a sentence for people
     return info.value
 
@@ -316,7 +316,7 @@ def decodes_or_rejects(model: type[BaseModel], payload: bytes,
     try:
         return codec.decode(model, payload, context=context)
     except DecodeError as exc:
-        assert exc.code in REJECT_CODES, (exc.code, str(exc))
+        assert exc.code in DECODE_CODES, (exc.code, str(exc))
         return None
 
 
@@ -384,10 +384,10 @@ def test_mutated_ism_cells_are_accepted_only_when_valid(data: st.DataObject) -> 
 
 
 def test_reject_codes_are_documented() -> None:
-    assert set(REJECT_CODES) >= {
+    assert set(DECODE_CODES) >= {
         "malformed_msgpack", "not_a_map", "missing_field", "wrong_type", "data_length",
         "non_finite", "non_positive_resolution", "out_of_range", "too_large"}
-    assert messages.DEFAULT_MAX_ISM_CELLS >= 4096 * 4096 // 4
+    assert limits.MAX_ISM_CELLS >= 4096 * 4096 // 4
 
 
 # -- robots' messages are strict: no silent coercion of booleans, strings or text ---------

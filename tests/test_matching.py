@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 
 from sogm_service.adapters.carmen import LaserScan, read_carmen
 from sogm_service.adapters.laser import laser_ism
+from sogm_service.bench.matching import benchmark_match, synthetic_floorplan
 from sogm_service.core import logodds
 from sogm_service.core import matching as mt
 from sogm_service.core.geometry import GridGeometry, Pose2D
@@ -96,7 +97,7 @@ def laser_view(full: npt.NDArray[np.int16], rng: np.random.Generator,
 def make_case(seed: int, params: mt.MatchParams, laser: bool = False, shift: float = 10.0,
               rot_deg: float = 10.0) -> Case:
     """A seeded misaligned ISM: random place (in free space), heading, shift and rotation."""
-    plan = mt.synthetic_floorplan(PLAN, seed=seed)
+    plan = synthetic_floorplan(PLAN, seed=seed)
     rng = np.random.default_rng(1000 + seed)
     lo = params.window_margin(ISM, ISM) + ISM * 0.75
     while True:
@@ -250,7 +251,7 @@ def test_an_ism_from_elsewhere_is_refused() -> None:
     params = mt.MatchParams()
     reasons: Counter[mt.MatchReason] = Counter()
     for seed in range(20):
-        plan = mt.synthetic_floorplan(PLAN, seed=seed)
+        plan = synthetic_floorplan(PLAN, seed=seed)
         plan_geom = GridGeometry(RES, PLAN, PLAN)
         here, there = grid_at(140, 140, 0.3 * seed), grid_at(460, 440, 0.3 * seed)
         ism = resample_logodds(plan, plan_geom, here, "nearest")
@@ -285,7 +286,7 @@ def test_a_shift_beyond_the_bounds_is_not_accepted() -> None:
     off = Pose2D(14 * RES, 0.0, 0.0)
     claimed = GridGeometry(RES, ISM, ISM, off.compose(case.truth.origin))
     wg = mt.match_window(claimed, params)
-    plan = mt.synthetic_floorplan(PLAN, seed=2)
+    plan = synthetic_floorplan(PLAN, seed=2)
     win = resample_logodds(plan, GridGeometry(RES, PLAN, PLAN), wg, "biodds")
     res = mt.match_ism(case.ism, win, params, mt.prior_matrix(claimed, wg))
     assert not res.accepted
@@ -391,7 +392,7 @@ def test_params_are_validated() -> None:
 @pytest.mark.parametrize("shape", [(0, 0), (0, 7), (1, 1), (9, 9)])
 def test_empty_or_tiny_grids_are_refused_not_raised(shape: tuple[int, int]) -> None:
     tiny = np.zeros(shape, np.int16)
-    other = mt.synthetic_floorplan(128, seed=1)
+    other = synthetic_floorplan(128, seed=1)
     assert mt.match_ism(tiny, other).reason is mt.MatchReason.TOO_FEW_FEATURES
     assert mt.match_ism(other, tiny).reason is mt.MatchReason.TOO_FEW_FEATURES
 
@@ -406,15 +407,15 @@ def test_ratio_test_option_still_recovers_cut_isms() -> None:
 
 
 def test_floorplan_is_seeded_and_structured() -> None:
-    a, b = mt.synthetic_floorplan(256, seed=4), mt.synthetic_floorplan(256, seed=4)
+    a, b = synthetic_floorplan(256, seed=4), synthetic_floorplan(256, seed=4)
     np.testing.assert_array_equal(a, b)
-    assert not np.array_equal(a, mt.synthetic_floorplan(256, seed=5))
+    assert not np.array_equal(a, synthetic_floorplan(256, seed=5))
     occupied = (a > 0).mean()
     assert 0.02 < occupied < 0.3 and (a < 0).mean() > 0.5 and (a == 0).any()
 
 
 def test_benchmark_match_returns_timings() -> None:
-    out = mt.benchmark_match(size=128, repeats=2, seed=1)
+    out = benchmark_match(size=128, repeats=2, seed=1)
     assert out["accepted"] == 1.0 and out["repeats"] == 2.0
     assert 0.0 < out["min_s"] <= out["mean_s"]
 
@@ -500,7 +501,7 @@ def pose_error(a: Pose2D, b: Pose2D) -> tuple[float, float]:
 def test_a_map_aligned_window_also_works() -> None:
     """The window need not be in the ISM's frame: any window with its prior matrix will do."""
     params = mt.MatchParams()
-    plan = mt.synthetic_floorplan(PLAN, seed=11)
+    plan = synthetic_floorplan(PLAN, seed=11)
     plan_geom = GridGeometry(RES, PLAN, PLAN)
     ok = 0
     for k in range(8):

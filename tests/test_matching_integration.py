@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from sogm_service.bench.matching import synthetic_floorplan
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.matching import synthetic_floorplan
 from sogm_service.core.tiles import TiledMap
 from sogm_service.service.client import MapClient
 from sogm_service.wire import codec

@@ -24,11 +24,10 @@ from sogm_service.core.resample import (
     INTERPOLATIONS,
     dst_to_src,
     resample_logodds,
-    resample_prob,
     resample_stack,
-    sample_bilinear,
     warp,
 )
+from tests.oracles import resample_prob, sample_bilinear
 
 # -- the paper's Eq. 3-5, literally --------------------------------------------------------
 

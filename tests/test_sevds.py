@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
+from sogm_service.bench.sevds import benchmark_sevds_vs_seeds
 from sogm_service.core.sevds import (
     SevdsParams,
-    benchmark_sevds_vs_seeds,
     bin_centres,
     histogram_variance,
     quantize,

@@ -15,9 +15,8 @@ from sogm_service.core.tilemanager import (
     TileManager,
     TileSwitchEvent,
     hysteresis_from_fraction,
-    tile_name,
-    tile_token,
 )
+from sogm_service.core.tiletypes import tile_name, tile_token
 from sogm_service.wire.messages import GeodeticFix
 
 LATTICE = TileLattice(0.05, 256)  # span 12.8 m

@@ -14,8 +14,8 @@ import pytest
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
-from sogm_service.core.resample import sample_bilinear
 from sogm_service.core.tiles import TiledMap
+from tests.oracles import sample_bilinear
 
 RES = 0.1
 T = 8  # small tiles so that small ISMs cross boundaries

@@ -21,8 +21,6 @@ from sogm_service.core.tilemanager import TileManager
 from sogm_service.store.tilestore import (
     MAGIC,
     QUARANTINE_DIR,
-    StoreLockedError,
-    TileFormatError,
     TileHeader,
     TileStore,
     TileWriter,
@@ -30,6 +28,7 @@ from sogm_service.store.tilestore import (
     tile_from_bytes,
     tile_to_bytes,
 )
+from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
 T = 32  # small tiles keep the suite fast; one test uses the real 256
 RES = 0.05

@@ -199,7 +199,7 @@ def _client(args: argparse.Namespace) -> Any:
 
 
 def _query(args: argparse.Namespace) -> int:
-    from sogm_service.service.client import ClientError
+    from sogm_service.wire.errors import ClientError
 
     with _client(args) as client:
         try:

@@ -39,11 +39,10 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
+from sogm_service.core.tiletypes import TileIndex
 from sogm_service.store.tilestore import (
     SUFFIX,
     StoredTile,
-    StoreLockedError,
-    TileFormatError,
     TileHeader,
     TileStore,
     lock_directory,
@@ -51,8 +50,8 @@ from sogm_service.store.tilestore import (
     read_tile_header,
     tile_from_bytes,
 )
+from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
-TileIndex = tuple[int, int]
 MapKey = tuple[str, float, int]  # (map name, resolution, tile size)
 _CELL_EPS = 1e-9
 MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an export in memory

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Callable
-from typing import Any
 
 import cv2
 import numpy as np
@@ -104,12 +102,10 @@ def fuse_rotated(quick: bool) -> Row:
 
 
 def sevds(quick: bool) -> Row:
+    from sogm_service.bench.sevds import benchmark_sevds_vs_seeds
+
     name, target = "sevds_256x256x3", "<= 1x"
-    fn = _find("benchmark_sevds_vs_seeds", ("sogm_service.core.sevds",
-    "sogm_service.core.supercells"))
-    if fn is None:
-        return unavailable(name, target, "no benchmark_sevds_vs_seeds() yet")
-    result = _sevds_result(fn, 2 if quick else 7)
+    result = benchmark_sevds_vs_seeds((3,), height=256, width=256, repeats=2 if quick else 7)[0]
     ours_s, base_s = result.get("sevds_s"), result.get("seeds_s")
     if not isinstance(ours_s, float) or not isinstance(base_s, float):
         return unavailable(name, target, f"no timings in {result}")
@@ -117,23 +113,15 @@ def sevds(quick: bool) -> Row:
     details = {k: v for k, v in result.items() if isinstance(v, (int, float, str))}
     return Row(name, ours_s * 1e3, base_s * 1e3, "ms", ratio, target, ratio <= 1.0,
                "OpenCV SEEDS (ximgproc), same input, levels, bins, iterations and superpixel "
-               "count", f"sevds.benchmark_sevds_vs_seeds, best of repeats; "
+               "count", f"bench.sevds.benchmark_sevds_vs_seeds, best of repeats; "
                f"{result.get('supercells')} supercells", details)
 
 
-def _sevds_result(fn: Callable[..., Any], repeats: int) -> dict[str, Any]:
-    """The 3-layer row of SEVDS's own timing function (its signature is SEVDS's business)."""
-    out = fn(layers=(3,), height=256, width=256, repeats=repeats)
-    rows = out if isinstance(out, list) else [out]
-    return dict(rows[0])
-
-
 def matching(quick: bool) -> Row:
-    fn = _find("benchmark_match", ("sogm_service.core.matching",))
-    if fn is None:
-        return unavailable("scan_match_256", "report", "no benchmark_match() yet")
+    from sogm_service.bench.matching import benchmark_match
+
     repeats = 3 if quick else 20
-    result: dict[str, float] = fn(size=256, repeats=repeats)
+    result = benchmark_match(size=256, repeats=repeats)
     orb = _orb_detect_time(repeats)
     ours_s = result["median_s"]
     return Row("scan_match_256", ours_s * 1e3, orb * 1e3, "ms", ours_s / orb, "report", None,
@@ -147,15 +135,3 @@ def _orb_detect_time(repeats: int) -> float:
     orb = cv2.ORB.create(nfeatures=500)
     times = interleaved(lambda: orb.detectAndCompute(img, None), lambda: None, repeats)[0]
     return median(times)
-
-
-def _find(name: str, modules: tuple[str, ...]) -> Callable[..., Any] | None:
-    """Import lazily: the modules belong to other engineers and may not exist yet."""
-    for module in modules:
-        try:
-            fn = getattr(importlib.import_module(module), name, None)
-        except ImportError:
-            continue
-        if callable(fn):
-            return fn
-    return None

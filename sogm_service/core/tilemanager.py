@@ -29,21 +29,7 @@ from typing import Any
 
 from sogm_service.core.geodesy import GeodeticLike, GeoPoint, LocalTangentPlane
 from sogm_service.core.geometry import Pose2D, TileLattice
-
-TileIndex = tuple[int, int]
-
-
-def tile_token(i: int, j: int) -> str:
-    """The lattice index as it appears in tile names and file names: ``i+0003_j-0012``.
-
-    Signed and zero-padded so that ``ls`` sorts a row of tiles in order (for |i| < 10000).
-    """
-    return f"i{i:+05d}_j{j:+05d}"
-
-
-def tile_name(map_name: str, i: int, j: int) -> str:
-    """The name of a tile's frame, e.g. ``default/tile_i+0003_j-0012`` (unique per map)."""
-    return f"{map_name}/tile_{tile_token(i, j)}"
+from sogm_service.core.tiletypes import TileIndex, tile_name
 
 
 @dataclass(frozen=True, slots=True)

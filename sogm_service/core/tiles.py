@@ -17,7 +17,7 @@ import itertools
 import math
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,9 +31,7 @@ from sogm_service.core.resample import (
     resample_stack,
     tile_patches,
 )
-
-TileIndex = tuple[int, int]
-Loader = Callable[[int, int], "tuple[list[str], npt.NDArray[np.int16], float] | None"]
+from sogm_service.core.tiletypes import Loader, TileIndex
 
 _ALIGN_TOL = 1e-6
 

@@ -27,6 +27,8 @@ from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.service.config import ServiceConfig, ZenohSettings
 from sogm_service.service.session import loopback_settings, open_session
 from sogm_service.wire import codec
+from sogm_service.wire.errors import DecodeError, QueryTimeoutError, ServiceError
+from sogm_service.wire.keys import MapKeys, last_chunk, pose_key, tile_of_key
 from sogm_service.wire.messages import (
     ErrorReply,
     FusedReply,
@@ -45,24 +47,6 @@ from sogm_service.wire.messages import (
 M = TypeVar("M", bound=BaseModel)
 
 DEFAULT_TIMEOUT_S = 5.0
-
-
-class ClientError(RuntimeError):
-    """Base of every error the client raises."""
-
-
-class ServiceError(ClientError):
-    """The server refused the request: ``code`` (machine-readable), ``parameter`` at fault."""
-
-    def __init__(self, code: str, message: str, parameter: str | None = None) -> None:
-        super().__init__(f"[{code}] {message}")
-        self.code = code
-        self.message = message
-        self.parameter = parameter
-
-
-class QueryTimeoutError(ClientError):
-    """No server answered within the timeout."""
 
 
 @dataclass(frozen=True)
@@ -133,7 +117,7 @@ class MapClient:
 
     # -- queries --------------------------------------------------------------------------
     def key(self, *parts: str) -> str:
-        return "/".join([self.prefix, self.map_name, *parts])
+        return MapKeys(self.prefix, self.map_name).key(*parts)
 
     def get_raw(self, key: str, params: dict[str, Any] | None = None,
                 timeout: float | None = None) -> bytes:
@@ -195,8 +179,7 @@ class MapClient:
         for reply in self.session.get(key, timeout=timeout or self.timeout):
             if reply.ok is None:
                 continue
-            parts = str(reply.ok.key_expr).rsplit("/", 2)
-            out[(int(parts[1]), int(parts[2]))] = reply.ok.payload.to_bytes()
+            out[tile_of_key(str(reply.ok.key_expr))] = reply.ok.payload.to_bytes()
         return out
 
     def subscribe_tile_events(self, callback: Callable[[TileEvent], None]) -> zenoh.Subscriber:
@@ -209,7 +192,7 @@ class MapClient:
     def servers(self, timeout: float | None = None) -> list[str]:
         """Ids of the live servers of this map (liveliness tokens)."""
         key = self.key("@server", "*")
-        return [str(r.ok.key_expr).rsplit("/", 1)[-1]
+        return [last_chunk(str(r.ok.key_expr))
                 for r in self.session.liveliness().get(key, timeout=timeout or self.timeout)
                 if r.ok is not None]
 
@@ -251,7 +234,7 @@ class MapClient:
                      stamp: float = 0.0, frame: str = "map", key_prefix: str = "pose",
                      fix: GeodeticFix | None = None) -> None:
         msg = PoseMessage(robot=robot, frame=frame, stamp=stamp, x=x, y=y, yaw=yaw, fix=fix)
-        self._publisher(f"{key_prefix}/{robot}").put(codec.encode(msg))
+        self._publisher(pose_key(key_prefix, robot)).put(codec.encode(msg))
 
 
 def _encoding_of(arr: npt.NDArray[Any]) -> str:
@@ -275,6 +258,6 @@ def _param(v: Any) -> str:
 def _service_error(payload: bytes) -> ServiceError:
     try:
         err = codec.decode(ErrorReply, payload)
-    except codec.DecodeError:
+    except DecodeError:
         return ServiceError("unknown", payload[:200].decode("utf-8", "replace"))
     return ServiceError(err.code, err.message, err.parameter)

@@ -7,7 +7,6 @@ with multicast scouting off.  ``deploy/sogm-service.toml`` documents every field
 
 from __future__ import annotations
 
-import math
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
@@ -15,7 +14,17 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from sogm_service.core import logodds
-from sogm_service.wire.messages import GeodeticFix, InterpName
+from sogm_service.core.resample import Interp
+from sogm_service.wire import limits
+from sogm_service.wire.errors import ConfigError
+from sogm_service.wire.keys import (
+    DEFAULT_ISM_KEY,
+    DEFAULT_MAP,
+    DEFAULT_POSE_KEY,
+    DEFAULT_PREFIX,
+    MapKeys,
+)
+from sogm_service.wire.messages import GeodeticFix
 
 
 class _Section(BaseModel):
@@ -23,7 +32,7 @@ class _Section(BaseModel):
 
 
 class MapSettings(_Section):
-    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]+$")] = "default"
+    name: Annotated[str, Field(pattern=limits.MAP_NAME_PATTERN)] = DEFAULT_MAP
     frame: str = "map"
     resolution: Annotated[float, Field(gt=0, le=100)] = 0.05
     tile_size: int = 256
@@ -54,8 +63,8 @@ class MatchingSettings(_Section):
 class IsmSource(_Section):
     """One ISM key expression and how its ISMs are treated."""
 
-    key_expr: str = "ism/**"
-    interp: InterpName = "biodds"
+    key_expr: str = DEFAULT_ISM_KEY
+    interp: Interp = "biodds"
     matching: MatchingSettings = MatchingSettings()
 
 
@@ -72,11 +81,11 @@ class StorageSettings(_Section):
 
 
 class LimitSettings(_Section):
-    max_ism_cells: Annotated[int, Field(gt=0)] = 4096 * 4096
-    max_ism_tiles: Annotated[int, Field(gt=0)] = 1024
-    max_payload_bytes: Annotated[int, Field(gt=0)] = 128 * 1024 * 1024
-    max_query_cells: Annotated[int, Field(gt=0)] = 4096 * 4096
-    queue_size: Annotated[int, Field(ge=1, le=100000)] = 64
+    max_ism_cells: Annotated[int, Field(gt=0)] = limits.MAX_ISM_CELLS
+    max_ism_tiles: Annotated[int, Field(gt=0)] = limits.MAX_ISM_TILES
+    max_payload_bytes: Annotated[int, Field(gt=0)] = limits.MAX_PAYLOAD_BYTES
+    max_query_cells: Annotated[int, Field(gt=0)] = limits.MAX_QUERY_CELLS
+    queue_size: Annotated[int, Field(ge=1, le=100000)] = limits.QUEUE_SIZE
     queue_policy: Literal["lossless", "latest"] = "lossless"
 
 
@@ -91,8 +100,8 @@ class ZenohSettings(_Section):
 class ServiceConfig(_Section):
     map: MapSettings = MapSettings()
     ism: list[IsmSource] = [IsmSource()]
-    pose_keys: list[str] = ["pose/**"]
-    prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-/]+$")] = "sogm"
+    pose_keys: list[str] = [DEFAULT_POSE_KEY]
+    prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-/]+$")] = DEFAULT_PREFIX
     tiles: TileSettings = TileSettings()
     storage: StorageSettings = StorageSettings()
     limits: LimitSettings = LimitSettings()
@@ -106,22 +115,14 @@ class ServiceConfig(_Section):
             raise ValueError("at least one ISM key expression is needed")
         return v
 
+    @property
+    def keys(self) -> MapKeys:
+        """The key expressions of this map (``<prefix>/<map>/...``)."""
+        return MapKeys(self.prefix, self.map.name)
+
     def key(self, *parts: str) -> str:
         """A key under ``<prefix>/<map>/``."""
-        return "/".join([self.prefix.strip("/"), self.map.name, *parts])
-
-    def query_cell_limit(self) -> int:
-        return self.limits.max_query_cells
-
-    @property
-    def tile_budget(self) -> int:
-        """How many full tiles of 8 layers fit the memory budget (for information)."""
-        per_tile = 8 * self.map.tile_size ** 2 * 2
-        return max(1, math.floor(self.storage.memory_budget_mb * 1e6 / per_tile))
-
-
-class ConfigError(ValueError):
-    """A configuration file that cannot be used: says which field and why."""
+        return self.keys.key(*parts)
 
 
 def load_config(path: Path | None) -> ServiceConfig:

@@ -37,14 +37,13 @@ from sogm_service.core.tiles import TiledMap, TileIndex
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.stats import Stats
 from sogm_service.store.tilestore import (
-    StoreLockedError,
-    TileFormatError,
     TileStore,
     TileWriter,
     tile_from_bytes,
     tile_to_bytes,
 )
 from sogm_service.wire import codec
+from sogm_service.wire.errors import StoreLockedError, TileFormatError
 from sogm_service.wire.messages import GeodeticFix, PoseModel, RobotTilesReply, TileEvent
 
 log = logging.getLogger("sogm_service.service.persistence")

@@ -27,35 +27,19 @@ from sogm_service.core.matching import (
 )
 from sogm_service.core.resample import Interp, resample_logodds
 from sogm_service.core.tiles import TiledMap, TileIndex
+from sogm_service.wire.errors import IsmRejectedError
+from sogm_service.wire.keys import key_remainder
+from sogm_service.wire.limits import LAYER_NAME_PATTERN
 from sogm_service.wire.messages import IsmMessage
 
-_LAYER_NAME = re.compile(r"^[A-Za-z0-9_\-./]{1,128}$")
-
-
-class IsmRejectedError(ValueError):
-    """An ISM that is well-formed on the wire but cannot go into this map."""
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-def key_prefix(key_expr: str) -> str:
-    """The literal chunks of a key expression before its first wildcard (``ism/**`` -> ``ism``)."""
-    literal = []
-    for chunk in key_expr.split("/"):
-        if "*" in chunk or "$" in chunk:
-            break
-        literal.append(chunk)
-    return "/".join(literal)
+_LAYER_NAME = re.compile(LAYER_NAME_PATTERN)
 
 
 def layer_name(msg: IsmMessage, key: str, key_expr: str) -> str:
     """The ISM's layer: its ``layer`` field, else the key's remainder after the literal prefix."""
     name = msg.layer
     if not name:
-        prefix = key_prefix(key_expr)
-        name = key[len(prefix):].strip("/") if prefix and key.startswith(prefix) else key
+        name = key_remainder(key, key_expr)
     if not _LAYER_NAME.match(name):
         raise IsmRejectedError("bad_layer", f"layer name {name!r} is empty, too long or has "
                                        "characters outside [A-Za-z0-9_-./]")

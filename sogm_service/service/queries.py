@@ -17,7 +17,8 @@ import numpy.typing as npt
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, window_geometry
 from sogm_service.core.tiles import TiledMap
-from sogm_service.wire.codec import DecodeError, unpack, validate
+from sogm_service.wire.codec import unpack, validate
+from sogm_service.wire.errors import DecodeError, QueryError
 from sogm_service.wire.messages import (
     FusedReply,
     FusedRequest,
@@ -32,16 +33,6 @@ from sogm_service.wire.messages import (
 )
 
 R = TypeVar("R", bound=WindowRequest)
-
-
-class QueryError(ValueError):
-    """A query that cannot be answered: ``code``, a sentence, and the parameter at fault."""
-
-    def __init__(self, code: str, message: str, parameter: str | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
-        self.parameter = parameter
 
 
 def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = None) -> R:

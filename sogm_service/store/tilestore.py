@@ -63,7 +63,8 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeodeticLike, GeoPoint, LocalTangentPlane
-from sogm_service.core.tilemanager import TileIndex, tile_token
+from sogm_service.core.tiletypes import TileIndex, tile_token
+from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
 log = logging.getLogger(__name__)
 
@@ -88,18 +89,6 @@ _RES_TOL: Final = 1e-9
 _tmp_counter = itertools.count()
 
 Fixed = npt.NDArray[np.int16]
-
-
-class TileFormatError(ValueError):
-    """A tile file or blob that must not be loaded; ``reason`` says why, for a person."""
-
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
-
-
-class StoreLockedError(RuntimeError):
-    """Another process owns the store directory."""
 
 
 # -- header ---------------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 No pickle, no ext types: a payload is a msgpack map of the model's fields, bytes as msgpack
 ``bin``.  Decoding never raises anything but :class:`DecodeError`, whose ``code`` names the
-reason (see :data:`sogm_service.wire.messages.REJECT_CODES`) so that the server can count rejections
+reason (see :data:`sogm_service.wire.errors.DECODE_CODES`) so that the server can count rejections
 per reason.
 """
 
@@ -15,7 +15,9 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from sogm_service.wire.messages import REJECT_CODES, SCHEMA_MODELS
+from sogm_service.wire.errors import DECODE_CODES, DecodeError
+from sogm_service.wire.limits import MAX_MSGPACK_STR, MAX_PAYLOAD_BYTES
+from sogm_service.wire.messages import SCHEMA_MODELS
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -34,19 +36,6 @@ _PYDANTIC_CODES = {
     "string_unicode": "wrong_type",  # bytes that are not UTF-8 where a string belongs
 }
 
-MAX_PAYLOAD_BYTES = 256 * 1024 * 1024
-
-
-class DecodeError(ValueError):
-    """A payload that is not a valid message: ``code`` for counters, ``str()`` for people."""
-
-    def __init__(self, code: str, message: str, parameter: str | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
-        self.parameter = parameter
-
-
 def encode(model: BaseModel) -> bytes:
     """Model -> msgpack bytes."""
     packed = msgpack.packb(model.model_dump(mode="python"), use_bin_type=True)
@@ -60,7 +49,7 @@ def unpack(payload: bytes | bytearray | memoryview, max_bytes: int = MAX_PAYLOAD
         raise DecodeError("too_large", f"payload of {len(payload)} bytes exceeds {max_bytes}")
     try:
         return msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True,
-                               max_bin_len=max_bytes, max_str_len=1 << 20)
+                               max_bin_len=max_bytes, max_str_len=MAX_MSGPACK_STR)
     except Exception as exc:  # msgpack raises several unrelated types for garbage
         raise DecodeError("malformed_msgpack", f"payload is not valid msgpack: {exc}") from None
 
@@ -85,7 +74,7 @@ def validation_error_to_decode_error(exc: ValidationError) -> DecodeError:
         code = _PYDANTIC_CODES[kind]
     elif kind.endswith("_type") or kind.endswith("_parsing") or kind == "model_type":
         code = "wrong_type"
-    elif kind in REJECT_CODES:
+    elif kind in DECODE_CODES:
         code = kind  # our own PydanticCustomError codes
     else:
         code = "invalid_value"  # any other pydantic check: never an undocumented code

@@ -7,7 +7,8 @@ robot in any language can produce one without a numpy-like array type.
 
 Validation happens here, once, at the edge: a model that validates is safe for the core.  Each
 rejection carries a machine-readable ``code`` (the pydantic error type; our own validators raise
-:class:`pydantic_core.PydanticCustomError` with the codes listed in :data:`REJECT_CODES`).
+:class:`pydantic_core.PydanticCustomError` with the codes listed in
+:data:`~sogm_service.wire.errors.DECODE_CODES`).
 """
 
 from __future__ import annotations
@@ -22,23 +23,13 @@ from pydantic import model_validator as _model_validator
 from pydantic_core import PydanticCustomError
 
 from sogm_service.core.logodds import ENCODING_DTYPES, Encoding
-
-REJECT_CODES: dict[str, str] = {
-    "malformed_msgpack": "the payload is not valid msgpack",
-    "not_a_map": "the payload is not a msgpack map",
-    "missing_field": "a required field is missing",
-    "wrong_type": "a field has the wrong type",
-    "data_length": "the data length does not match width x height x encoding",
-    "non_finite": "a number is NaN or infinite",
-    "non_positive_resolution": "the resolution is not positive",
-    "out_of_range": "a probability or occupancy value is out of range",
-    "too_large": "the message exceeds the configured size limits",
-    "invalid_value": "a field has an invalid value",
-}
+from sogm_service.core.resample import Interp
+from sogm_service.core.sevds import BOUNDS as _SEVDS_BOUNDS
+from sogm_service.core.sevds import Criterion, SevdsParams
+from sogm_service.wire.limits import MAX_ISM_CELLS
 
 IsmEncoding = Literal["occupancy_i8", "prob_u8", "prob_f32"]
 OutputEncoding = Literal["prob_u8", "prob_f32", "logodds_i16", "occupancy_i8"]
-InterpName = Literal["biodds", "bilinear", "nearest"]
 FusionMethod = Literal["bayes", "max"]
 
 StrictInt = Annotated[int, Strict()]
@@ -48,7 +39,9 @@ FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 WireFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 StrictBytes = Annotated[bytes, Strict()]
 
-DEFAULT_MAX_ISM_CELLS = 4096 * 4096
+
+
+_SEVDS = SevdsParams()  # the defaults of a supercells query
 
 
 class WireModel(BaseModel):
@@ -142,7 +135,7 @@ class IsmMessage(WireModel):
     @_model_validator(mode="after")
     def _check_data(self, info: ValidationInfo) -> IsmMessage:
         limits = info.context or {}
-        max_cells = int(limits.get("max_cells", DEFAULT_MAX_ISM_CELLS))
+        max_cells = int(limits.get("max_cells", MAX_ISM_CELLS))
         cells = self.width * self.height
         if cells > max_cells:
             raise PydanticCustomError("too_large", "{cells} cells exceed the limit of {limit}",
@@ -207,7 +200,7 @@ class WindowRequest(BaseModel):
     height: Annotated[float, Field(gt=0)] = 10.0
     resolution: Annotated[float, Field(gt=0)] | None = None
     layers: list[str] | None = None
-    interp: InterpName = "biodds"
+    interp: Interp = "biodds"
     encoding: OutputEncoding = "prob_u8"
 
     @field_validator("layers", mode="before")
@@ -231,12 +224,16 @@ class SupercellRequest(WindowRequest):
     """Window + SEVDS parameters (paper section III-D.2)."""
 
     schema_name: ClassVar[str] = "supercell_request"
-    block_size: Annotated[int, Field(ge=2, le=64)] = 8
-    levels: Annotated[int, Field(ge=1, le=6)] = 3
-    bins: Annotated[int, Field(ge=2, le=64)] = 5
-    iterations: Annotated[int, Field(ge=1, le=50)] = 4
-    gamma: Annotated[float, Field(ge=0)] = 0.01  # tuned on the evaluation scenes (0 to 0.02)
-    criterion: Literal["distribution", "energy"] = "distribution"
+    block_size: Annotated[int, Field(ge=_SEVDS_BOUNDS["block_size"][0],
+                                     le=_SEVDS_BOUNDS["block_size"][1])] = _SEVDS.block_size
+    levels: Annotated[int, Field(ge=_SEVDS_BOUNDS["levels"][0],
+                                 le=_SEVDS_BOUNDS["levels"][1])] = _SEVDS.levels
+    bins: Annotated[int, Field(ge=_SEVDS_BOUNDS["bins"][0],
+                               le=_SEVDS_BOUNDS["bins"][1])] = _SEVDS.bins
+    iterations: Annotated[int, Field(ge=_SEVDS_BOUNDS["iterations"][0],
+                                     le=_SEVDS_BOUNDS["iterations"][1])] = _SEVDS.iterations
+    gamma: Annotated[float, Field(ge=0)] = _SEVDS.gamma  # tuned on the evaluation scenes
+    criterion: Criterion = _SEVDS.criterion
     labels: bool = False
 
 
@@ -258,7 +255,7 @@ class GridReply(WindowReply):
 
     schema_name: ClassVar[str] = "submap_reply"
     encoding: OutputEncoding
-    interp: InterpName
+    interp: Interp
     data: WireArray
 
 
@@ -268,7 +265,7 @@ class FusedReply(WindowReply):
     schema_name: ClassVar[str] = "fused_reply"
     method: FusionMethod
     encoding: OutputEncoding
-    interp: InterpName
+    interp: Interp
     data: WireArray
 
 

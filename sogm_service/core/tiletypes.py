@@ -1,0 +1,38 @@
+"""The tile vocabulary shared by the map, the tile manager and the store (DESIGN.md section 3).
+
+Tile ``(i, j)`` of a lattice with tile size T and resolution r covers
+``[i T r, (i+1) T r) x [j T r, (j+1) T r)`` of the map frame and holds every layer as one
+``(N, T, T)`` int16 array of fixed-point log-odds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import numpy.typing as npt
+
+TileIndex = tuple[int, int]
+"""``(i, j)``: the tile's column and row on the lattice."""
+
+Fixed = npt.NDArray[np.int16]
+"""Fixed-point log-odds (:mod:`sogm_service.core.logodds`)."""
+
+LoaderResult = tuple[list[str], Fixed, float]
+"""A tile brought back from storage: ``(layer names, (N, T, T) stack, stamp)``."""
+
+Loader = Callable[[int, int], LoaderResult | None]
+"""Brings back tile ``(i, j)`` that is not resident, or None when there is none."""
+
+
+def tile_token(i: int, j: int) -> str:
+    """The lattice index as it appears in tile names and file names: ``i+0003_j-0012``.
+
+    Signed and zero-padded so that ``ls`` sorts a row of tiles in order (for |i| < 10000).
+    """
+    return f"i{i:+05d}_j{j:+05d}"
+
+
+def tile_name(map_name: str, i: int, j: int) -> str:
+    """The name of a tile's frame, e.g. ``default/tile_i+0003_j-0012`` (unique per map)."""
+    return f"{map_name}/tile_{tile_token(i, j)}"

@@ -1,0 +1,101 @@
+"""Every error the service and its client raise, and every reason code, in one place.
+
+One base, :class:`SogmError`, carries what the wire needs to report a refusal: a
+machine-readable ``code`` (counted per reason in ``stats`` and sent back with ``reply_err``), a
+sentence for people (``message``) and the ``parameter`` at fault when there is one.  The
+families below differ only in where the refusal happens, so a handler can catch the base.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+DECODE_CODES: Final[dict[str, str]] = {
+    "malformed_msgpack": "the payload is not valid msgpack",
+    "not_a_map": "the payload is not a msgpack map",
+    "missing_field": "a required field is missing",
+    "wrong_type": "a field has the wrong type",
+    "data_length": "the data length does not match width x height x encoding",
+    "non_finite": "a number is NaN or infinite",
+    "non_positive_resolution": "the resolution is not positive",
+    "out_of_range": "a probability or occupancy value is out of range",
+    "too_large": "the message exceeds the configured size limits",
+    "invalid_value": "a field has an invalid value",
+}
+"""Why a payload is not a valid message (:class:`DecodeError`)."""
+
+ISM_CODES: Final[dict[str, str]] = {
+    "wrong_frame": "the ISM's frame is not the map frame",
+    "bad_layer": "the layer name is empty, too long or has characters outside [A-Za-z0-9_-./]",
+    "too_large": "the ISM's footprint covers more tiles than the limit",
+    "internal_error": "the server failed on this ISM (a bug: the map is unchanged)",
+}
+"""Why a well-formed ISM cannot go into this map (:class:`IsmRejectedError`); scan matching adds
+``match_<reason>`` (:class:`sogm_service.core.matching.MatchReason`)."""
+
+QUERY_CODES: Final[dict[str, str]] = {
+    "bad_parameter": "a query parameter is missing, of the wrong type or out of range",
+    "unknown_layer": "a requested layer does not exist",
+    "window_too_large": "the window needs more cells than the limit",
+    "internal_error": "the server failed on this query (a bug)",
+}
+"""Why a query cannot be answered (:class:`QueryError`)."""
+
+
+class SogmError(Exception):
+    """Base of every refusal: ``code``, ``message`` (for people) and ``parameter`` at fault."""
+
+    def __init__(self, code: str, message: str, parameter: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.parameter = parameter
+
+
+class DecodeError(SogmError, ValueError):
+    """A payload that is not a valid message (codes: :data:`DECODE_CODES`)."""
+
+
+class IsmRejectedError(SogmError, ValueError):
+    """An ISM that is well-formed on the wire but cannot go into this map (:data:`ISM_CODES`)."""
+
+
+class QueryError(SogmError, ValueError):
+    """A query that cannot be answered (codes: :data:`QUERY_CODES`)."""
+
+
+class ConfigError(SogmError, ValueError):
+    """A configuration that cannot be used: says which field and why."""
+
+    def __init__(self, message: str, parameter: str | None = None) -> None:
+        super().__init__("bad_config", message, parameter)
+
+
+class TileFormatError(SogmError, ValueError):
+    """A tile file or blob that must not be loaded; ``reason`` says why, for a person."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__("bad_tile", reason)
+        self.reason = reason
+
+
+class StoreLockedError(SogmError, RuntimeError):
+    """Another process owns the store directory."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__("store_locked", message)
+
+
+class ClientError(RuntimeError):
+    """Base of every error the Python client raises."""
+
+
+class ServiceError(SogmError, ClientError):
+    """The server refused the request: ``code`` (machine-readable), ``parameter`` at fault."""
+
+    def __str__(self) -> str:
+        return f"[{self.code}] {self.message}"
+
+
+class QueryTimeoutError(ClientError):
+    """No server answered within the timeout."""

@@ -1,0 +1,98 @@
+"""Every key expression of the service, built and parsed in one place (DESIGN.md section 4).
+
+Under ``<prefix>/<map>/`` (default ``sogm/default/``) a server declares its queryables
+(:data:`QUERYABLES`), ``tiles/<i>/<j>``, ``robots``, the tile-event publisher ``events/tile``,
+scan-matching reports ``matching/<ISM key>`` and its liveliness token ``@server/<id>``.  ISMs
+and poses arrive on their own key expressions (``ism/**``, ``pose/**`` by default): the layer is
+the remainder of an ISM key after the expression's literal prefix, the robot the last chunk of a
+pose key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+DEFAULT_PREFIX: Final = "sogm"
+DEFAULT_MAP: Final = "default"
+DEFAULT_ISM_KEY: Final = "ism/**"
+DEFAULT_POSE_KEY: Final = "pose/**"
+QUERYABLES: Final = ("submap", "fused", "supercells", "info", "stats")
+"""The window and status queryables every server declares under ``<prefix>/<map>/``."""
+
+
+@dataclass(frozen=True)
+class MapKeys:
+    """The keys of one map: ``MapKeys("sogm", "default").tile(3, -2)`` ->
+    ``sogm/default/tiles/3/-2``."""
+
+    prefix: str = DEFAULT_PREFIX
+    map_name: str = DEFAULT_MAP
+
+    def key(self, *parts: str) -> str:
+        """A key under ``<prefix>/<map>/``."""
+        return "/".join([self.prefix.strip("/"), self.map_name, *parts])
+
+    def tile(self, i: int, j: int) -> str:
+        return self.key("tiles", str(i), str(j))
+
+    @property
+    def all_tiles(self) -> str:
+        return self.key("tiles", "**")
+
+    @property
+    def tile_events(self) -> str:
+        return self.key("events", "tile")
+
+    @property
+    def robots(self) -> str:
+        return self.key("robots")
+
+    def server_token(self, server_id: str) -> str:
+        return self.key("@server", server_id)
+
+    @property
+    def all_servers(self) -> str:
+        return self.key("@server", "*")
+
+    def matching(self, ism_key: str) -> str:
+        return self.key("matching", ism_key)
+
+
+def tile_of_key(key: str) -> tuple[int, int]:
+    """``(i, j)`` of a ``.../tiles/<i>/<j>`` key; ``ValueError`` for anything else."""
+    parts = key.rsplit("/", 3)
+    if len(parts) != 4 or parts[1] != "tiles":
+        raise ValueError(f"not a tile key: {key!r}")
+    return int(parts[2]), int(parts[3])
+
+
+def last_chunk(key: str) -> str:
+    """The last chunk of a key: the robot of ``pose/<robot>``, the id of ``@server/<id>``."""
+    return key.rsplit("/", 1)[-1]
+
+
+def literal_prefix(key_expr: str) -> str:
+    """The literal chunks of a key expression before its first wildcard (``ism/**`` -> ``ism``)."""
+    literal = []
+    for chunk in key_expr.split("/"):
+        if "*" in chunk or "$" in chunk:
+            break
+        literal.append(chunk)
+    return "/".join(literal)
+
+
+def key_remainder(key: str, key_expr: str) -> str:
+    """What a concrete key adds to its expression's literal prefix
+    (``ism/robot1/laser/obstacle`` under ``ism/**`` -> ``robot1/laser/obstacle``)."""
+    prefix = literal_prefix(key_expr)
+    return key[len(prefix):].strip("/") if prefix and key.startswith(prefix) else key
+
+
+def ism_key(prefix: str, robot: str, sensor: str, layer: str) -> str:
+    """The key a robot publishes one sensor's ISMs of one class on."""
+    return f"{prefix}/{robot}/{sensor}/{layer}"
+
+
+def pose_key(prefix: str, robot: str) -> str:
+    return f"{prefix}/{robot}"
