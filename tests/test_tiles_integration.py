@@ -13,7 +13,7 @@ import pytest
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 from sogm_service.core.tiles import TiledMap
-from sogm_service.store.tilestore import TileStore
+from sogm_service.store.directory import DirectoryStore
 from sogm_service.wire.messages import TileEvent
 from tests.conftest import start_server, wait_processed, wait_until
 
@@ -146,7 +146,7 @@ def test_sigkill_under_load_restarts_from_the_last_checkpoint(tmp_path: Path) ->
         pusher.join(10)
 
     # Every tile file loads and its checksums hold.
-    with TileStore(store_dir, "default", 0.05, 256) as store:
+    with DirectoryStore(store_dir, "default", 0.05, 256) as store:
         index = store.index()
         assert store.problems == []
         assert sorted(index) == [(0, 0), (0, 1), (1, 0), (1, 1)]
@@ -250,7 +250,7 @@ def test_sigterm_flushes_every_queued_ism_to_the_store(tmp_path: Path) -> None:
         assert wait_until(lambda: client.stats().counters.get("isms_received") == 25, 10)
     # No checkpoint has run (60 s interval): only the shutdown flush can save these.
     assert srv.terminate(timeout=15) == 0
-    with TileStore(store_dir, "default", 0.05, 256) as store:
+    with DirectoryStore(store_dir, "default", 0.05, 256) as store:
         stored = store.load(0, 0)
     assert stored is not None
     assert _prefix_count(stored.data[0, :200, :200], inc, 10**6) == 25

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import struct
 import threading
 import zlib
@@ -18,16 +19,15 @@ from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeoPoint
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.tilemanager import TileManager
-from sogm_service.store.tilestore import (
+from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
+from sogm_service.store.format import (
     MAGIC,
-    QUARANTINE_DIR,
     TileHeader,
-    TileStore,
-    TileWriter,
     tile_file_name,
     tile_from_bytes,
     tile_to_bytes,
 )
+from sogm_service.store.writer import TileWriter
 from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
 T = 32  # small tiles keep the suite fast; one test uses the real 256
@@ -43,9 +43,9 @@ def stack(seed: int, n: int = 2, t: int = T) -> np.ndarray:
     return data
 
 
-def open_store(path: Path, **kw: Any) -> TileStore:
+def open_store(path: Path, **kw: Any) -> DirectoryStore:
     kw.setdefault("frame", "map")
-    return TileStore(path, "lab", RES, T, **kw)
+    return DirectoryStore(path, "lab", RES, T, **kw)
 
 
 def header(i: int = 3, j: int = -12, layers: list[str] = LAYERS, **kw: Any) -> TileHeader:
@@ -120,7 +120,7 @@ def test_full_size_tile_round_trip(tmp_path: Path) -> None:
     rng = np.random.default_rng(4)
     data = np.zeros((8, 256, 256), dtype=np.int16)
     data[:, :, :150] = rng.integers(-6907, 6908, (8, 256, 150))
-    with TileStore(tmp_path, "lab", RES, 256) as store:
+    with DirectoryStore(tmp_path, "lab", RES, 256) as store:
         info = store.write(-1, 2, [f"c{k}" for k in range(8)], data, 1.0)
         assert info.size < data.nbytes
         tile = store.load(-1, 2)
@@ -174,7 +174,7 @@ def test_values_outside_the_fixed_point_range_are_rejected() -> None:
         tile_from_bytes(tile_to_bytes(header(), bad))
 
 
-def _write_two(store: TileStore) -> tuple[Path, Path]:
+def _write_two(store: DirectoryStore) -> tuple[Path, Path]:
     store.write(0, 0, LAYERS, stack(10), 1.0)
     store.write(1, 0, LAYERS, stack(11), 1.0)
     return store.path_for(0, 0), store.path_for(1, 0)
@@ -185,7 +185,7 @@ def test_truncated_file_is_quarantined_on_index(tmp_path: Path,
     with open_store(tmp_path) as store:
         bad, good = _write_two(store)
         bad.write_bytes(bad.read_bytes()[:-100])  # a torn write without the rename protocol
-        with caplog.at_level(logging.WARNING, logger="sogm_service.store.tilestore"):
+        with caplog.at_level(logging.WARNING, logger="sogm_service.store.format"):
             index = store.index()
         assert list(index) == [(1, 0)]
         assert not bad.exists() and good.exists()
@@ -322,7 +322,7 @@ def test_writer_persists_snapshots_and_flush_waits(tmp_path: Path) -> None:
         writer.submit(0, 0, LAYERS, stack(1), 1.0)
 
 
-class _GatedStore(TileStore):
+class _GatedStore(DirectoryStore):
     """A store whose writes wait for a gate: lets a test hold the writer mid-write."""
 
     def __init__(self, *a: Any, **kw: Any) -> None:
@@ -415,3 +415,29 @@ def test_loads_during_rewrites_never_see_a_torn_file(tmp_path: Path) -> None:
             assert any(np.array_equal(tile.data, v) for v in versions)
         assert writer.close(10.0)
         assert store.problems == [] and not (tmp_path / QUARANTINE_DIR).exists()
+
+
+GOLDEN = Path(__file__).parent / "data" / "sogm_golden_r0.050_t16_i+0003_j-0002.tile"
+
+
+def test_a_tile_file_written_before_the_package_layout_loads_and_reencodes_byte_for_byte(
+        tmp_path: Path) -> None:
+    """``tests/data`` holds a tile written by the code of commit 55775f4 (flat modules): the
+    file format must not have moved with the code."""
+    blob = GOLDEN.read_bytes()
+    tile = tile_from_bytes(blob)
+    h = tile.header
+    assert (h.map_name, h.frame, h.index, h.resolution, h.tile_size) == \
+        ("golden", "map", (3, -2), 0.05, 16)
+    assert h.layers == ("robot1/laser/obstacle", "floor", "pallet")
+    assert h.stamp == 1234.5 and h.written_unix == 1764400000.0
+    assert h.datum is not None and (h.datum.latitude, h.datum.longitude) == (48.1, 11.5)
+    expected = np.load(GOLDEN.with_name("golden_tile_layers.npy"))
+    np.testing.assert_array_equal(tile.data, expected)
+    assert tile_to_bytes(h, tile.data) == blob  # same header + data -> the very same bytes
+    shutil.copy(GOLDEN, tmp_path / GOLDEN.name)
+    with DirectoryStore(tmp_path, "golden", 0.05, 16) as store:
+        assert list(store.index()) == [(3, -2)]
+        loaded = store.load(3, -2)
+        assert loaded is not None
+        np.testing.assert_array_equal(loaded.data, expected)

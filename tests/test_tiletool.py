@@ -14,7 +14,8 @@ import pytest
 from sogm_service.apps import render
 from sogm_service.apps.tiletool import add_tiles_parser, build_parser, main, run_tiles
 from sogm_service.core import logodds
-from sogm_service.store.tilestore import QUARANTINE_DIR, TileStore, tile_file_name
+from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
+from sogm_service.store.format import tile_file_name
 
 T = 16
 RES = 0.1  # 1.6 m tiles
@@ -22,7 +23,7 @@ RES = 0.1  # 1.6 m tiles
 
 def make_store(path: Path, tiles: dict[tuple[int, int], tuple[list[str], np.ndarray]],
                name: str = "lab") -> None:
-    with TileStore(path, name, RES, T) as store:
+    with DirectoryStore(path, name, RES, T) as store:
         for (i, j), (layers, data) in tiles.items():
             store.write(i, j, layers, data, 1700000000.0 + i)
 
@@ -130,7 +131,7 @@ def test_import_validates_copies_and_rejects_with_reasons(tmp_path: Path) -> Non
     assert "1 imported, 0 skipped, 2 rejected" in text
     assert "truncated" in text and "magic" in text
     assert bad.exists()  # the source is never touched
-    with TileStore(dest, "lab", RES, T) as store:
+    with DirectoryStore(dest, "lab", RES, T) as store:
         assert list(store.index()) == [(0, 0)]
         tile = store.load(0, 0)
         assert tile is not None and (tile.data == 11).all()
@@ -139,14 +140,14 @@ def test_import_validates_copies_and_rejects_with_reasons(tmp_path: Path) -> Non
 def test_import_conflict_policies(tmp_path: Path) -> None:
     src, dest = tmp_path / "src", tmp_path / "dest"
     make_store(src, {(0, 0): (["a"], filled(1, 1))})  # stamp 1700000000
-    with TileStore(dest, "lab", RES, T) as store:
+    with DirectoryStore(dest, "lab", RES, T) as store:
         store.write(0, 0, ["a"], filled(1, 2), 1600000000.0)  # older
     assert "1 skipped" in run(["import", str(src), "--into", str(dest)])[1]
     assert "1 imported" in run(["import", str(src), "--into", str(dest),
                                 "--on-conflict", "newer"])[1]
     assert "1 skipped" in run(["import", str(src), "--into", str(dest),
                                "--on-conflict", "newer"])[1]  # not newer any more
-    with TileStore(dest, "lab", RES, T) as store:
+    with DirectoryStore(dest, "lab", RES, T) as store:
         tile = store.load(0, 0)
         assert tile is not None and (tile.data == 1).all()
 
@@ -154,7 +155,7 @@ def test_import_conflict_policies(tmp_path: Path) -> None:
 def test_import_refuses_a_store_in_use(tmp_path: Path,
                                        capsys: pytest.CaptureFixture[str]) -> None:
     make_store(tmp_path / "src", {(0, 0): (["a"], filled(1, 1))})
-    with TileStore(tmp_path / "dest", "lab", RES, T):
+    with DirectoryStore(tmp_path / "dest", "lab", RES, T):
         code, _ = run(["import", str(tmp_path / "src"), "--into", str(tmp_path / "dest")])
     assert code == 1 and "in use" in capsys.readouterr().err
 

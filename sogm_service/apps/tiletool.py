@@ -40,12 +40,11 @@ import numpy.typing as npt
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.tiletypes import TileIndex
-from sogm_service.store.tilestore import (
+from sogm_service.store.directory import DirectoryStore, lock_directory
+from sogm_service.store.format import (
     SUFFIX,
     StoredTile,
     TileHeader,
-    TileStore,
-    lock_directory,
     read_tile_file,
     read_tile_header,
     tile_from_bytes,
@@ -222,7 +221,7 @@ class Region:
 def cmd_export(args: argparse.Namespace, out: TextIO) -> int:
     entries = [e for e in scan(args.directory) if _matches(e, args) and e.header is not None]
     key = _single_map(entries)
-    store = TileStore(args.directory, *key, frame=None, readonly=True)
+    store = DirectoryStore(args.directory, *key, frame=None, readonly=True)
     lattice = TileLattice(key[1], key[2])
     region = _export_region(store, lattice, args)
     if args.layers:
@@ -246,7 +245,7 @@ def _single_map(entries: list[Entry]) -> MapKey:
     return keys[0]
 
 
-def _export_region(store: TileStore, lattice: TileLattice, args: argparse.Namespace) -> Region:
+def _export_region(store: DirectoryStore, lattice: TileLattice, args: argparse.Namespace) -> Region:
     if args.tile is not None:
         i, j = args.tile
         return mosaic(store, lattice, i, j, i, j)
@@ -256,7 +255,7 @@ def _export_region(store: TileStore, lattice: TileLattice, args: argparse.Namesp
     return box_region(store, lattice, *args.box)
 
 
-def mosaic(store: TileStore, lattice: TileLattice, i0: int, j0: int, i1: int,
+def mosaic(store: DirectoryStore, lattice: TileLattice, i0: int, j0: int, i1: int,
            j1: int) -> Region:
     """Tiles ``i0..i1 x j0..j1`` side by side; missing tiles and layers stay unknown (0)."""
     t = lattice.tile_size
@@ -276,7 +275,7 @@ def mosaic(store: TileStore, lattice: TileLattice, i0: int, j0: int, i1: int,
     return Region(layers, data, (origin.x, origin.y), lattice.resolution)
 
 
-def _load_tiles(store: TileStore, indices: list[TileIndex]) -> list[StoredTile]:
+def _load_tiles(store: DirectoryStore, indices: list[TileIndex]) -> list[StoredTile]:
     tiles = []
     for i, j in indices:
         tile = store.load(i, j)
@@ -292,7 +291,7 @@ def _union_layers(names: Iterable[tuple[str, ...]]) -> list[str]:
     return out
 
 
-def box_region(store: TileStore, lattice: TileLattice, xmin: float, ymin: float, xmax: float,
+def box_region(store: DirectoryStore, lattice: TileLattice, xmin: float, ymin: float, xmax: float,
                ymax: float) -> Region:
     """The cells meeting the metric box ``[xmin, xmax] x [ymin, ymax]``."""
     if not (xmax > xmin and ymax > ymin):
@@ -370,7 +369,7 @@ def cmd_import(args: argparse.Namespace, out: TextIO) -> int:
     dest.mkdir(parents=True, exist_ok=True)
     lock_fd = lock_directory(dest)
     try:
-        stores: dict[MapKey, TileStore] = {}
+        stores: dict[MapKey, DirectoryStore] = {}
         counts = {"imported": 0, "skipped": 0, "rejected": 0}
         for path in _source_files(args.sources):
             outcome = _import_one(path, stores, dest, args.on_conflict)
@@ -399,7 +398,7 @@ def _source_files(sources: list[Path]) -> list[Path]:
     return files
 
 
-def _import_one(path: Path, stores: dict[MapKey, TileStore], dest: Path,
+def _import_one(path: Path, stores: dict[MapKey, DirectoryStore], dest: Path,
                 policy: str) -> str:
     """One file -> ``"imported"``, ``"skipped:<why>"`` or ``"rejected:<reason>"``."""
     try:
@@ -419,14 +418,15 @@ def _replace(old: TileHeader, new: TileHeader, policy: str) -> bool:
     return policy == "overwrite" or (policy == "newer" and new.stamp > old.stamp)
 
 
-def _store_for(header: TileHeader, stores: dict[MapKey, TileStore], dest: Path) -> TileStore:
+def _store_for(header: TileHeader, stores: dict[MapKey, DirectoryStore],
+               dest: Path) -> DirectoryStore:
     """The destination store of the tile's map; its frame is the one already stored, if any."""
     key = (header.map_name, header.resolution, header.tile_size)
     if key not in stores:
-        probe = TileStore(dest, *key, frame=None, readonly=True)
+        probe = DirectoryStore(dest, *key, frame=None, readonly=True)
         frames = {info.header.frame for info in probe.index().values()}
         frame = frames.pop() if len(frames) == 1 else header.frame
-        store = TileStore(dest, *key, frame=frame, lock=False)
+        store = DirectoryStore(dest, *key, frame=frame, lock=False)
         store.index()
         stores[key] = store
     return stores[key]

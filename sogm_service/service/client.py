@@ -170,7 +170,7 @@ class MapClient:
 
     def tiles(self, i: int | None = None, j: int | None = None,
               timeout: float | None = None) -> dict[tuple[int, int], bytes]:
-        """Whole tiles in the store's file format (:mod:`sogm_service.store.tilestore`): one
+        """Whole tiles in the store's file format (:mod:`sogm_service.store.format`): one
         tile, or
         every tile of the map when ``i``/``j`` are omitted."""
         key = self.key("tiles", "**") if i is None or j is None else \

@@ -1,9 +1,9 @@
 """Where the map meets storage and the fleet (service layer, DESIGN.md section 3).
 
-* **Tile store** (:mod:`sogm_service.store.tilestore`): on start the store directory is indexed and
+* **Tile store** (:mod:`sogm_service.store.format`): on start the store directory is indexed and
   every stored tile is known to the map (loaded on first touch).  Dirty tiles are checkpointed
   every ``checkpoint_interval_s``: a copy of the tile (the paper's double buffer) goes to the
-  background :class:`~sogm_service.store.tilestore.TileWriter`, so ingestion never waits for disk.
+  background :class:`~sogm_service.store.format.TileWriter`, so ingestion never waits for disk.
   A SIGKILL loses at most what changed since the last checkpoint; shutdown flushes everything.
 * **Memory budget**: after each ISM and each checkpoint, least recently used tiles outside every
   robot's region of interest are evicted until the resident tiles fit the budget.  A dirty tile
@@ -36,12 +36,9 @@ from sogm_service.core.tilemanager import TileManager, TileSwitchEvent
 from sogm_service.core.tiles import TiledMap, TileIndex
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.stats import Stats
-from sogm_service.store.tilestore import (
-    TileStore,
-    TileWriter,
-    tile_from_bytes,
-    tile_to_bytes,
-)
+from sogm_service.store.directory import DirectoryStore
+from sogm_service.store.format import tile_from_bytes, tile_to_bytes
+from sogm_service.store.writer import TileWriter
 from sogm_service.wire import codec
 from sogm_service.wire.errors import StoreLockedError, TileFormatError
 from sogm_service.wire.messages import GeodeticFix, PoseModel, RobotTilesReply, TileEvent
@@ -62,7 +59,7 @@ class Persistence:
         self.manager = TileManager(self.lattice, config.tiles.hysteresis_m,
                                    config.tiles.roi_radius_tiles, datum=config.map.datum,
                                    map_name=config.map.name)
-        self.store: TileStore | None = None
+        self.store: DirectoryStore | None = None
         self.writer: TileWriter | None = None
         self._map: TiledMap | None = None
         self._lock: threading.RLock | None = None
@@ -74,7 +71,7 @@ class Persistence:
         self._budget = int(config.storage.memory_budget_mb * 1e6)
         self._warned_budget = False
         # A read-only store object on no directory: builds headers and checks replicas.
-        self._format = TileStore(".", config.map.name, config.map.resolution,
+        self._format = DirectoryStore(".", config.map.name, config.map.resolution,
                                  config.map.tile_size, frame=config.map.frame,
                                  datum=config.map.datum, readonly=True)
 
@@ -86,7 +83,7 @@ class Persistence:
         if directory is None:
             return
         try:
-            self.store = TileStore(directory, self.config.map.name, self.config.map.resolution,
+            self.store = DirectoryStore(directory, self.config.map.name, self.config.map.resolution,
                                    self.config.map.tile_size, frame=self.config.map.frame,
                                    datum=self.config.map.datum)
         except StoreLockedError as exc:
