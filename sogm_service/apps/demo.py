@@ -211,8 +211,8 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
 def _world_window(world: Any) -> dict[str, Any]:
     g = world.geometry
     w, h = g.size_m
-    centre = g.cell_to_world()[:2] @ np.array([(g.width - 1) / 2, (g.height - 1) / 2, 1.0])
-    return dict(x=float(centre[0]), y=float(centre[1]), yaw=g.origin.yaw, width=w, height=h,
+    x, y = g.centre()
+    return dict(x=x, y=y, yaw=g.origin.yaw, width=w, height=h,
                 resolution=g.resolution)
 
 

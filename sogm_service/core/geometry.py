@@ -21,6 +21,11 @@ import numpy.typing as npt
 Matrix3 = npt.NDArray[np.float64]
 
 
+def wrap_angle(angle: float) -> float:
+    """``angle`` in ``[-pi, pi)``."""
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
 @dataclass(frozen=True, slots=True)
 class Pose2D:
     """A planar pose: position (m) and heading (rad) in some parent frame."""
@@ -95,6 +100,11 @@ class GridGeometry:
         x = m[0, 0] * u + m[0, 1] * v + m[0, 2]
         y = m[1, 0] * u + m[1, 1] * v + m[1, 2]
         return np.stack([x, y], axis=-1)
+
+    def centre(self) -> tuple[float, float]:
+        """Parent-frame ``(x, y)`` of the grid's centre."""
+        c = self.cell_to_world()[:2] @ np.array([(self.width - 1) / 2, (self.height - 1) / 2, 1.0])
+        return (float(c[0]), float(c[1]))
 
     def corners(self) -> npt.NDArray[np.float64]:
         """``(4, 2)`` parent-frame corners of the grid's outer boundary."""

@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core import logodds
-from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, wrap_angle
 
 Interp = Literal["biodds", "bilinear", "nearest"]
 INTERPOLATIONS: tuple[Interp, ...] = ("biodds", "bilinear", "nearest")
@@ -150,7 +150,7 @@ def lattice_offset(src: GridGeometry, resolution: float) -> tuple[int, int] | No
     cells (same resolution and heading, origin on a cell corner), else None."""
     if abs(src.resolution - resolution) > ALIGN_TOL * resolution:
         return None
-    yaw = (src.origin.yaw + math.pi) % (2 * math.pi) - math.pi
+    yaw = wrap_angle(src.origin.yaw)
     if abs(yaw) > 1e-9:
         return None
     u, v = src.origin.x / resolution, src.origin.y / resolution

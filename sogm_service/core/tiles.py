@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core import logodds
-from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, wrap_angle
 from sogm_service.core.resample import (
     Interp,
     informative,
@@ -204,9 +204,6 @@ class TiledMap:
             touched.append(index)
         return touched
 
-    def _tile_geometry(self, index: TileIndex) -> GridGeometry:
-        return self.lattice.tile_geometry(*index)
-
     # -- reading --------------------------------------------------------------------------
     def mosaic(self, box: tuple[int, int, int, int],
                layer_ids: list[int]) -> npt.NDArray[np.int16]:
@@ -274,7 +271,7 @@ def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:
     """Same resolution and heading, and ``dst`` starts on a cell corner of ``src``."""
     if abs(src.resolution - dst.resolution) > _ALIGN_TOL * src.resolution:
         return False
-    dyaw = (dst.origin.yaw - src.origin.yaw + math.pi) % (2 * math.pi) - math.pi
+    dyaw = wrap_angle(dst.origin.yaw - src.origin.yaw)
     if abs(dyaw) > 1e-9:
         return False
     m = src.world_to_cell() @ dst.cell_to_world()

@@ -1,48 +1,78 @@
-"""From a validated ISM message to a Bayesian update of the tiled map (pure, no I/O).
+"""The ingestion pipeline: one ISM from its Zenoh payload to the tiles, each step once.
 
-Flow (DESIGN.md section 2): decoded/validated :class:`~sogm_service.wire.messages.IsmMessage` ->
-fixed log-odds increments (256-entry lookup table for 8-bit encodings) -> resampled from the
-ISM's own pose and resolution into each tile it overlaps -> Eq. 1 add-then-clamp.
+DESIGN.md section 2, in this order and nowhere else:
+
+1. **decode and validate** the payload (:mod:`sogm_service.wire.codec`, the pydantic model);
+2. **prepare**: the layer name (the ``layer`` field or the key's remainder), the frame check,
+   fixed log-odds increments (a 256-entry lookup table for 8-bit encodings) and the geometry;
+3. **bound checks** from the header alone (how many tiles the footprint touches);
+4. **align**: scan matching per the source's policy (:class:`~sogm_service.service.matcher.Matcher`)
+5. **fuse**: Eq. 1 into every tile the ISM overlaps (:meth:`~sogm_service.core.tiles.TiledMap.fuse`)
+6. **tile bookkeeping**: the fleet tracker follows the ISM's robot, the memory budget is kept.
+
+Each refusal is a :class:`~sogm_service.wire.errors.SogmError` whose ``code`` is counted and
+logged once (:class:`~sogm_service.service.stats.Rejections`); the map is unchanged by it.
 """
 
 from __future__ import annotations
 
+import logging
 import re
-from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass
-from typing import Any
+import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core import logodds
-from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.core.matching import (
-    MatchParams,
-    MatchResult,
-    corrected_geometry,
-    match_ism,
-    match_window,
-    prior_matrix,
-)
-from sogm_service.core.resample import Interp, resample_logodds
-from sogm_service.core.tiles import TiledMap, TileIndex
-from sogm_service.wire.errors import IsmRejectedError
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.resample import Interp
+from sogm_service.core.tiles import TiledMap
+from sogm_service.core.tiletypes import TileIndex
+from sogm_service.service.checkpoints import Checkpointer
+from sogm_service.service.config import ServiceConfig
+from sogm_service.service.fleet import FleetTracker
+from sogm_service.service.mapstate import SharedMap
+from sogm_service.service.matcher import Matcher
+from sogm_service.service.stats import Rejections, Stats
+from sogm_service.wire import codec
+from sogm_service.wire.errors import IsmRejectedError, SogmError
 from sogm_service.wire.keys import key_remainder
 from sogm_service.wire.limits import LAYER_NAME_PATTERN
 from sogm_service.wire.messages import IsmMessage
 
+log = logging.getLogger(__name__)
+
 _LAYER_NAME = re.compile(LAYER_NAME_PATTERN)
+
+
+@dataclass(frozen=True, slots=True)
+class IsmItem:
+    """A received ISM as the Zenoh callback queues it: which source, which key, the bytes."""
+
+    source: int
+    key: str
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class PreparedIsm:
+    """An ISM ready to fuse: its message, layer, increments and where they lie."""
+
+    msg: IsmMessage
+    key: str
+    source: int
+    layer: str
+    increments: npt.NDArray[np.int16]
+    geometry: GridGeometry
 
 
 def layer_name(msg: IsmMessage, key: str, key_expr: str) -> str:
     """The ISM's layer: its ``layer`` field, else the key's remainder after the literal prefix."""
-    name = msg.layer
-    if not name:
-        name = key_remainder(key, key_expr)
+    name = msg.layer or key_remainder(key, key_expr)
     if not _LAYER_NAME.match(name):
         raise IsmRejectedError("bad_layer", f"layer name {name!r} is empty, too long or has "
-                                       "characters outside [A-Za-z0-9_-./]")
+                                            "characters outside [A-Za-z0-9_-./]", "layer")
     return name
 
 
@@ -51,61 +81,91 @@ def ism_geometry(msg: IsmMessage) -> GridGeometry:
                         Pose2D(msg.origin.x, msg.origin.y, msg.origin.yaw))
 
 
-def fuse_ism(tiled: TiledMap, msg: IsmMessage, layer: str,
-             interp: Interp = "biodds") -> list[TileIndex]:
-    """Eq. 1 for one ISM, as it claims to be placed."""
-    inc, geometry = prepare(tiled, msg)
-    return tiled.fuse(layer, inc, geometry, interp, msg.stamp)
-
-
-def prepare(tiled: TiledMap, msg: IsmMessage) -> tuple[npt.NDArray[np.int16], GridGeometry]:
-    """Check the frame; the ISM's fixed log-odds increments and its geometry."""
-    if msg.frame != tiled.frame:
+def increments(msg: IsmMessage, frame: str, eps0: float) -> npt.NDArray[np.int16]:
+    """The ISM's fixed log-odds increments, once its frame is checked against the map's."""
+    if msg.frame != frame:
         raise IsmRejectedError("wrong_frame",
-                               f"ISM frame {msg.frame!r} is not the map frame {tiled.frame!r}")
-    return logodds.increments(msg.array(), msg.encoding, tiled.eps0), ism_geometry(msg)
+                               f"ISM frame {msg.frame!r} is not the map frame {frame!r}", "frame")
+    return logodds.increments(msg.array(), msg.encoding, eps0)
 
 
-def check_extent(tiled: TiledMap, geometry: GridGeometry, max_tiles: int) -> None:
+def check_extent(lattice: TileLattice, geometry: GridGeometry, max_tiles: int) -> None:
     """Refuse an ISM whose footprint would touch more than ``max_tiles`` tiles (a valid but
     absurd resolution could otherwise create millions of tiles)."""
-    n = len(tiled.lattice.tiles_overlapping(geometry))
+    n = len(lattice.tiles_overlapping(geometry))
     if n > max_tiles:
         raise IsmRejectedError("too_large", f"the ISM covers {n} tiles; the limit is "
-                                            f"{max_tiles} (check its resolution)")
+                                            f"{max_tiles} (check its resolution)", "resolution")
 
 
-@dataclass(frozen=True)
-class Alignment:
-    """The outcome of scan matching one ISM against the map (paper section III-C.2)."""
-
-    result: MatchResult | None  # None: skipped (nothing in the map to match against yet)
-    increments: npt.NDArray[np.int16]  # the ISM at map resolution, in its own frame
-    claimed: GridGeometry  # where the ISM says it is (map resolution)
-    corrected: GridGeometry | None  # where matching put it (when accepted)
+def fuse_ism(tiled: TiledMap, msg: IsmMessage, layer: str,
+             interp: Interp = "biodds") -> list[TileIndex]:
+    """Eq. 1 for one ISM as it claims to be placed, in one process (tests, benchmarks): steps
+    2 and 5 of the pipeline, without matching and bookkeeping."""
+    inc = increments(msg, tiled.frame, tiled.eps0)
+    return tiled.fuse(layer, inc, ism_geometry(msg), interp, msg.stamp)
 
 
-def align(tiled: TiledMap, inc: npt.NDArray[np.int16], geometry: GridGeometry,
-          layer: str, params: MatchParams, min_known: int,
-          map_lock: AbstractContextManager[Any] | None = None) -> Alignment:
-    """Match an ISM against the map window around its claimed pose.
+class IngestPipeline:
+    """Runs the steps of the module docstring for one queued ISM at a time."""
 
-    The ISM is first brought to map resolution in its own frame (matching needs one scale);
-    the window is the claimed footprint plus the matcher's margin, sampled from ``layer``.
-    ``map_lock`` is held only while the map is read, not while features are matched.
-    """
-    res = tiled.lattice.resolution
-    claimed = GridGeometry(res, max(1, round(geometry.width * geometry.resolution / res)),
-                           max(1, round(geometry.height * geometry.resolution / res)),
-                           geometry.origin)
-    ism = inc if claimed == geometry else resample_logodds(inc, geometry, claimed, "biodds")
-    window = match_window(claimed, params)
-    with map_lock or nullcontext():
-        if layer not in tiled.layers:
-            return Alignment(None, ism, claimed, None)
-        surroundings = tiled.sample(window, [layer], "biodds")[0]
-    if np.count_nonzero(surroundings) < min_known:
-        return Alignment(None, ism, claimed, None)
-    result = match_ism(ism, surroundings, params, prior_matrix(claimed, window))
-    corrected = corrected_geometry(claimed, window, result) if result.accepted else None
-    return Alignment(result, ism, claimed, corrected)
+    def __init__(self, config: ServiceConfig, shared: SharedMap, stats: Stats,
+                 matcher: Matcher, fleet: FleetTracker, tiles: Checkpointer) -> None:
+        self.config = config
+        self.shared = shared
+        self.stats = stats
+        self.matcher = matcher
+        self.fleet = fleet
+        self.tiles = tiles
+        self.rejections = Rejections(stats)
+        self._lattice = TileLattice(config.map.resolution, config.map.tile_size)
+
+    def handle(self, item: IsmItem) -> None:
+        """Decode, validate, prepare, check, align, fuse and book-keep one ISM; a refusal at
+        any step is counted with its reason and leaves the map unchanged."""
+        started = time.perf_counter()
+        try:
+            msg = self.decode(item)
+            ism = self.prepare(item, msg)
+            check_extent(self._lattice, ism.geometry, self.config.limits.max_ism_tiles)
+            ism = self.align(ism)
+            touched = self.fuse(ism)
+            self.bookkeeping(ism, touched)
+        except SogmError as exc:
+            self.rejections.reject(exc.code, f"{item.key}: {exc}")
+            return
+        except Exception as exc:  # never let one ISM kill the worker
+            log.exception("internal error on ISM from %s", item.key)
+            self.rejections.reject("internal_error", f"{item.key}: {type(exc).__name__}: {exc}")
+            return
+        self.stats.fused()
+        self.stats.latency("fuse", time.perf_counter() - started)
+
+    def decode(self, item: IsmItem) -> IsmMessage:
+        return codec.decode(IsmMessage, item.payload,
+                            context={"max_cells": self.config.limits.max_ism_cells})
+
+    def prepare(self, item: IsmItem, msg: IsmMessage) -> PreparedIsm:
+        source = self.config.ism[item.source]
+        layer = layer_name(msg, item.key, source.key_expr)
+        inc = increments(msg, self.shared.frame, self.config.map.eps0)
+        return PreparedIsm(msg, item.key, item.source, layer, inc, ism_geometry(msg))
+
+    def align(self, ism: PreparedIsm) -> PreparedIsm:
+        """Scan matching per the source's policy: the ISM where it is to be fused."""
+        if not self.matcher.enabled(ism.source):
+            return ism
+        inc, geometry = self.matcher.place(self.shared, ism.msg, ism.key, ism.layer, ism.source,
+                                           ism.increments, ism.geometry)
+        return replace(ism, increments=inc, geometry=geometry)
+
+    def fuse(self, ism: PreparedIsm) -> list[TileIndex]:
+        interp = self.config.ism[ism.source].interp
+        with self.shared.locked() as tiled:
+            return tiled.fuse(ism.layer, ism.increments, ism.geometry, interp, ism.msg.stamp)
+
+    def bookkeeping(self, ism: PreparedIsm, touched: list[TileIndex]) -> None:
+        x, y = ism.geometry.centre()
+        self.fleet.ism_centre(ism.msg.robot, x, y, ism.msg.stamp)
+        if touched:
+            self.tiles.enforce_budget()

@@ -1,129 +1,59 @@
-"""The map server daemon: Zenoh glue around the pure core (DESIGN.md sections 2-4).
+"""The map server daemon: the Zenoh wiring around the ingestion pipeline and the queries.
 
-Threads and why:
+Threads and why (DESIGN.md sections 2-4):
 
-* Zenoh's own callback threads receive ISMs and only enqueue the raw payload, so the network
-  side is never slowed by decoding or fusion.
-* One ingestion worker decodes, validates and fuses ISMs in arrival order.  The queue is
-  bounded: with the ``lossless`` policy a full queue blocks the subscriber callback, which
-  pushes back through Zenoh to publishers that use congestion control BLOCK; with ``latest``
-  only the newest ISM per key waits and the replaced ones are counted as dropped.
-* Queries run on Zenoh's query threads and take the map lock only for the sampling itself, so
-  they wait at most for the one ISM being fused, never for the backlog.
-* Persistence (tile store, checkpoints, eviction) lives in :mod:`sogm_service.service.persistence`.
+* Zenoh's own callback threads receive ISMs and only queue the raw payload
+  (:mod:`sogm_service.service.ingest`), so the network side is never slowed by decoding or
+  fusion; one worker runs the :class:`~sogm_service.service.pipeline.IngestPipeline` in
+  arrival order.
+* Queries run on Zenoh's query threads: request -> sampling under the map's lock -> reply
+  (:mod:`sogm_service.service.queries`), so they wait at most for the one ISM being fused,
+  never for the backlog.
+* Checkpoints, eviction (:mod:`~sogm_service.service.checkpoints`), the fleet's tiles
+  (:mod:`~sogm_service.service.fleet`) and whole-tile replication
+  (:mod:`~sogm_service.service.replication`) are parts this class wires to the session.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import zenoh
 from pydantic import BaseModel
 
+from sogm_service.core.geometry import TileLattice
 from sogm_service.core.tiles import TiledMap
-from sogm_service.service import pipeline as ingest
 from sogm_service.service import queries
+from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
+from sogm_service.service.fleet import FleetTracker
+from sogm_service.service.ingest import IngestQueue, IngestWorker
+from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.matcher import Matcher
-from sogm_service.service.persistence import Persistence
+from sogm_service.service.pipeline import IngestPipeline, IsmItem
+from sogm_service.service.replication import Replication
 from sogm_service.service.session import open_session
 from sogm_service.service.stats import Stats
 from sogm_service.wire import codec
+from sogm_service.wire.errors import DecodeError, SogmError
+from sogm_service.wire.keys import QUERYABLES, last_chunk
 from sogm_service.wire.messages import (
     ErrorReply,
     FusedRequest,
     InfoReply,
-    IsmMessage,
     PoseMessage,
     StatsReply,
     SubmapRequest,
     SupercellRequest,
+    TileEvent,
 )
 
-log = logging.getLogger("sogm_service.service.server")
+log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True, slots=True)
-class _Item:
-    source: int
-    key: str
-    payload: bytes
-
-
-class IngestQueue:
-    """Bounded hand-off from Zenoh callbacks to the worker, ``lossless`` or ``latest``."""
-
-    def __init__(self, size: int, policy: str, stats: Stats) -> None:
-        self.policy = policy
-        self._stats = stats
-        self._fifo: queue.Queue[_Item | None] = queue.Queue(maxsize=size)
-        self._latest: dict[str, _Item] = {}
-        self._cond = threading.Condition()
-        self._closed = False
-
-    def put(self, item: _Item) -> bool:
-        """Enqueue; ``lossless`` blocks while full.  False once the queue is closed."""
-        if self._closed:
-            return False
-        if self.policy == "lossless":
-            while not self._closed:
-                try:
-                    self._fifo.put(item, timeout=0.2)
-                    return True
-                except queue.Full:
-                    continue
-            return False
-        with self._cond:
-            if item.key in self._latest:
-                self._stats.count("isms_dropped_latest")
-            self._latest[item.key] = item
-            self._cond.notify()
-        return True
-
-    def get(self, timeout: float) -> _Item | None:
-        if self.policy == "lossless":
-            try:
-                return self._fifo.get(timeout=timeout)
-            except queue.Empty:
-                return None
-        with self._cond:
-            if not self._latest and not self._cond.wait_for(lambda: bool(self._latest),
-                                                            timeout):
-                return None
-            key = next(iter(self._latest))
-            return self._latest.pop(key)
-
-    def depth(self) -> int:
-        return self._fifo.qsize() if self.policy == "lossless" else len(self._latest)
-
-    def close(self) -> None:
-        """Refuse new items; what is queued stays for the worker to finish."""
-        self._closed = True
-
-
-class _RateLimitedLog:
-    """One log line per rejection, at most one a second per reason (counts the rest)."""
-
-    def __init__(self) -> None:
-        self._last: dict[str, float] = {}
-        self._suppressed: dict[str, int] = {}
-
-    def warn(self, reason: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last.get(reason, -1e9) >= 1.0:
-            extra = self._suppressed.pop(reason, 0)
-            more = f" ({extra} more of this reason suppressed)" if extra else ""
-            log.warning("rejected ISM [%s]: %s%s", reason, text, more)
-            self._last[reason] = now
-        else:
-            self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
+Handler = Callable[[zenoh.Query], BaseModel | bytes | None]
 
 
 class MapServer:
@@ -131,20 +61,25 @@ class MapServer:
 
     def __init__(self, config: ServiceConfig, session: zenoh.Session | None = None) -> None:
         self.config = config
+        self.keys = config.keys
         self.stats = Stats()
-        self.lock = threading.RLock()
-        self.persistence = Persistence(config, self.stats)
+        lattice = TileLattice(config.map.resolution, config.map.tile_size)
+        self.fleet = FleetTracker(config, lattice, self.stats)
+        self.tiles = Checkpointer(config, self.stats, keep=self.fleet.regions_of_interest)
+        self._tiled = TiledMap(config.map.name, config.map.frame, lattice, config.map.eps0,
+                               loader=self.tiles.load)
+        self.map = SharedMap(self._tiled)
         self.matcher = Matcher(config, self.stats)
-        self.map = TiledMap(config.map.name, config.map.frame, self.persistence.lattice,
-                            config.map.eps0, loader=self.persistence.load)
-        self._owns_session = session is None
-        self._session = session
+        self.replication = Replication(config, self.map, self.tiles, self.stats)
+        self.pipeline = IngestPipeline(config, self.map, self.stats, self.matcher, self.fleet,
+                                       self.tiles)
         self._queue = IngestQueue(config.limits.queue_size, config.limits.queue_policy,
                                   self.stats)
+        self._worker = IngestWorker(self._queue, self.pipeline.handle, self.stats)
+        self._owns_session = session is None
+        self._session = session
         self._declared: list[Any] = []
-        self._stop = threading.Event()
-        self._worker: threading.Thread | None = None
-        self._reject_log = _RateLimitedLog()
+        self._events: zenoh.Publisher | None = None
         self.server_id = ""
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -154,15 +89,15 @@ class MapServer:
         return self._session
 
     def start(self) -> MapServer:
-        self.persistence.open(self.map)
+        self.tiles.attach(self.map, self._tiled)
         if self._session is None:
             self._session = open_session(self.config.zenoh)
         self.server_id = str(self._session.info.zid())
         self.matcher.attach(self._session)
-        self._worker = threading.Thread(target=self._work, name="sogm-ingest", daemon=True)
         self._worker.start()
         self._declare()
-        self.persistence.start(self.map, self.lock)
+        self.fleet.attach(self._publish_event, self.tiles)
+        self.tiles.start()
         log.info("serving map %r (frame %s, %.3f m) as %s; ISMs on %s", self.config.map.name,
                  self.config.map.frame, self.config.map.resolution, self.server_id,
                  [s.key_expr for s in self.config.ism])
@@ -171,23 +106,29 @@ class MapServer:
     def _declare(self) -> None:
         s = self.session
         if self.config.tiles.replicate_on_start:  # before anything can be asked of this server
-            self.persistence.replicate(s)
+            self.replication.replicate(s)
         for idx, source in enumerate(self.config.ism):
-            self._declared.append(s.declare_subscriber(
-                source.key_expr, self._on_ism_callback(idx)))
+            self._declared.append(s.declare_subscriber(source.key_expr, self._on_ism(idx)))
         for key in self.config.pose_keys:
             self._declared.append(s.declare_subscriber(key, self._on_pose))
-        handlers: dict[str, Callable[[zenoh.Query], BaseModel | bytes | None]] = {
+        handlers: dict[str, Handler] = {
             "submap": self._on_submap, "fused": self._on_fused,
-            "supercells": self._on_supercells,
-            "info": self._on_info, "stats": self._on_stats,
+            "supercells": self._on_supercells, "info": lambda q: self.info(),
+            "stats": lambda q: self.stats_reply(),
         }
+        assert set(handlers) == set(QUERYABLES)
         for name, handler in handlers.items():
-            self._declared.append(s.declare_queryable(self.config.key(name),
+            self._declared.append(s.declare_queryable(self.keys.key(name),
                                                       self._guarded(name, handler)))
-        self._declared.extend(self.persistence.declare(s, self._guarded))
-        self._declared.append(
-            s.liveliness().declare_token(self.config.key("@server", self.server_id)))
+        self._events = s.declare_publisher(self.keys.tile_events,
+                                           congestion_control=zenoh.CongestionControl.BLOCK,
+                                           reliability=zenoh.Reliability.RELIABLE)
+        self._declared.append(self._events)
+        self._declared.append(s.declare_queryable(
+            self.keys.all_tiles, self._guarded("tiles", self.replication.on_tiles)))
+        self._declared.append(s.declare_queryable(
+            self.keys.robots, self._guarded("robots", lambda q: self.fleet.robots_reply())))
+        self._declared.append(s.liveliness().declare_token(self.keys.server_token(self.server_id)))
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop accepting work, finish what is queued, flush the store, close the session."""
@@ -198,10 +139,9 @@ class MapServer:
             except Exception:  # already gone with a closing session: nothing to undo
                 log.debug("undeclare failed", exc_info=True)
         self._declared.clear()
-        self._stop.set()
-        if self._worker is not None:
-            self._worker.join(timeout)
-        self.persistence.close(self.map, self.lock, timeout)
+        self._events = None
+        self._worker.stop(timeout)
+        self.tiles.close(timeout)
         if self._owns_session and self._session is not None:
             self._session.close()
             self._session = None
@@ -213,79 +153,41 @@ class MapServer:
         self.stop()
 
     # -- ingestion ------------------------------------------------------------------------
-    def _on_ism_callback(self, source: int) -> Callable[[zenoh.Sample], None]:
+    def _on_ism(self, source: int) -> Callable[[zenoh.Sample], None]:
         limit = self.config.limits.max_payload_bytes
 
         def on_ism(sample: zenoh.Sample) -> None:
             self.stats.count("isms_received")
             payload = sample.payload.to_bytes()
             if len(payload) > limit:  # refused before it can occupy the queue
-                self._reject("too_large", f"{sample.key_expr}: payload of {len(payload)} "
-                                          f"bytes exceeds {limit}")
+                self.pipeline.rejections.reject(
+                    "too_large", f"{sample.key_expr}: payload of {len(payload)} bytes exceeds "
+                                 f"{limit}")
                 return
-            self._queue.put(_Item(source, str(sample.key_expr), payload))
+            self._queue.put(IsmItem(source, str(sample.key_expr), payload))
         return on_ism
-
-    def _work(self) -> None:
-        while True:
-            item = self._queue.get(timeout=0.1)
-            if item is None:
-                if self._stop.is_set() and self._queue.depth() == 0:
-                    return
-                continue
-            self._handle_ism(item)
-
-    def _handle_ism(self, item: _Item) -> None:
-        source = self.config.ism[item.source]
-        started = time.perf_counter()
-        try:
-            msg = codec.decode(IsmMessage, item.payload,
-                               context={"max_cells": self.config.limits.max_ism_cells})
-            layer = ingest.layer_name(msg, item.key, source.key_expr)
-            self.fuse(msg, item.key, layer, item.source)
-        except (codec.DecodeError, ingest.IsmRejectedError) as exc:
-            self._reject(str(getattr(exc, "code", "invalid")), f"{item.key}: {exc}")
-            return
-        except Exception as exc:  # never let one ISM kill the worker
-            log.exception("internal error on ISM from %s", item.key)
-            self._reject("internal_error", f"{item.key}: {type(exc).__name__}: {exc}")
-            return
-        self.stats.fused()
-        self.stats.latency("fuse", time.perf_counter() - started)
-
-    def fuse(self, msg: IsmMessage, key: str, layer: str, source: int) -> None:
-        """Fuse one validated ISM: extent check, optional scan matching, Eq. 1."""
-        inc, geometry = ingest.prepare(self.map, msg)
-        ingest.check_extent(self.map, geometry, self.config.limits.max_ism_tiles)
-        if self.matcher.enabled(source):
-            inc, geometry = self.matcher.place(self.map, self.lock, msg, key, layer, source,
-                                               inc, geometry)
-        with self.lock:
-            touched = self.map.fuse(layer, inc, geometry, self.config.ism[source].interp,
-                                    msg.stamp)
-        centre = geometry.cell_to_world()[:2] @ np.array(
-            [(geometry.width - 1) / 2, (geometry.height - 1) / 2, 1.0])
-        self.persistence.touched(touched, msg.robot, (float(centre[0]), float(centre[1])),
-                                 msg.stamp)
-
-    def _reject(self, reason: str, text: str) -> None:
-        self.stats.reject(reason)
-        self._reject_log.warn(reason, text)
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
         try:
             msg = codec.decode(PoseMessage, sample.payload.to_bytes())
-        except codec.DecodeError as exc:
+        except DecodeError as exc:
             self.stats.count(f"poses_rejected_{exc.code}")
             return
-        robot = msg.robot or str(sample.key_expr).rsplit("/", 1)[-1]
         self.stats.count("poses_received")
-        self.persistence.robot_pose(robot, msg.x, msg.y, msg.stamp)
+        robot = msg.robot or last_chunk(str(sample.key_expr))
+        self.fleet.robot_pose(robot, msg.x, msg.y, msg.stamp)
+
+    def _publish_event(self, event: TileEvent) -> None:
+        if self._events is not None:
+            self._events.put(codec.encode(event))
+
+    def wait_idle(self, timeout: float = 10.0) -> bool:
+        """Block until the ingestion queue is empty and the worker idle (tests, demo)."""
+        return self._worker.wait_idle(timeout)
 
     # -- queries --------------------------------------------------------------------------
-    def _guarded(self, name: str,
-                 handler: Callable[[zenoh.Query], BaseModel | bytes | None]
-                 ) -> Callable[[zenoh.Query], None]:
+    def _guarded(self, name: str, handler: Handler) -> Callable[[zenoh.Query], None]:
+        """Run ``handler`` and reply; a refusal goes back as an ``ErrorReply`` with its code."""
         def on_query(q: zenoh.Query) -> None:
             started = time.perf_counter()
             self.stats.count(f"queries_{name}")
@@ -294,7 +196,7 @@ class MapServer:
                 if result is not None:
                     payload = result if isinstance(result, bytes) else codec.encode(result)
                     q.reply(q.key_expr, payload)
-            except queries.QueryError as exc:
+            except SogmError as exc:
                 self.stats.count(f"query_errors_{exc.code}")
                 q.reply_err(codec.encode(ErrorReply(code=exc.code, message=exc.message,
                                                     parameter=exc.parameter)))
@@ -314,61 +216,44 @@ class MapServer:
 
     def _on_submap(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SubmapRequest, *self.params(q))
-        with self.lock:
-            return queries.submap(self.map, req, self.config.limits.max_query_cells, time.time())
+        with self.map.locked() as tiled:
+            return queries.submap(tiled, req, self.config.limits.max_query_cells, time.time())
 
     def _on_fused(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(FusedRequest, *self.params(q))
-        with self.lock:
-            return queries.fused(self.map, req, self.config.limits.max_query_cells, time.time())
+        with self.map.locked() as tiled:
+            return queries.fused(tiled, req, self.config.limits.max_query_cells, time.time())
 
     def _on_supercells(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SupercellRequest, *self.params(q))
-        with self.lock:
+        with self.map.locked() as tiled:
             window, layers, stack = queries.supercell_input(
-                self.map, req, self.config.limits.max_query_cells)
-        return queries.supercells(self.map, req, window, layers, stack, time.time())
+                tiled, req, self.config.limits.max_query_cells)
+        return queries.supercells(self._tiled, req, window, layers, stack, time.time())
 
     def info(self) -> InfoReply:
-        with self.lock:
+        with self.map.locked() as tiled:
             return InfoReply(
-                map=self.map.name, frame=self.map.frame, server_id=self.server_id,
-                resolution=self.map.lattice.resolution, tile_size=self.map.tile_size,
-                eps0=self.map.eps0, logodds_scale=1000.0, layers=list(self.map.layers),
-                tiles=sorted(self.map.known_tiles()), bounds=self.map.bounds(),
+                map=tiled.name, frame=tiled.frame, server_id=self.server_id,
+                resolution=tiled.lattice.resolution, tile_size=tiled.tile_size,
+                eps0=tiled.eps0, logodds_scale=1000.0, layers=list(tiled.layers),
+                tiles=sorted(tiled.known_tiles()), bounds=tiled.bounds(),
                 datum=self.config.map.datum)
-
-    def _on_info(self, q: zenoh.Query) -> BaseModel:
-        return self.info()
 
     def stats_reply(self) -> StatsReply:
         counters, rejected = self.stats.snapshot()
-        with self.lock:
+        with self.map.locked() as tiled:
             extra: dict[str, Any] = {
-                "layers": len(self.map.layers),
-                "tiles_resident": len(self.map.tiles),
-                "tiles_known": len(self.map.known_tiles()),
-                "resident_mb": round(self.map.resident_bytes() / 1e6, 3),
+                "layers": len(tiled.layers),
+                "tiles_resident": len(tiled.tiles),
+                "tiles_known": len(tiled.known_tiles()),
+                "resident_mb": round(tiled.resident_bytes() / 1e6, 3),
             }
-        extra.update(self.persistence.stats_extra())
+        extra["robots"] = self.fleet.robot_count()
+        extra.update(self.tiles.stats_extra())
         extra.update(self.matcher.stats_extra())
-        return StatsReply(map=self.map.name, server_id=self.server_id,
+        return StatsReply(map=self.config.map.name, server_id=self.server_id,
                           uptime_s=time.monotonic() - self.stats.started, counters=counters,
                           rejected=rejected, queue_depth=self._queue.depth(),
                           isms_per_s=self.stats.isms_per_s(),
                           latency_ms=self.stats.percentiles(), extra=extra)
-
-    def _on_stats(self, q: zenoh.Query) -> BaseModel:
-        return self.stats_reply()
-
-    def wait_idle(self, timeout: float = 10.0) -> bool:
-        """Block until the ingestion queue is empty and the worker idle (tests, demo)."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            counters, _ = self.stats.snapshot()
-            done = (counters.get("isms_fused", 0) + counters.get("isms_rejected", 0)
-                    + counters.get("isms_dropped_latest", 0))
-            if self._queue.depth() == 0 and done >= counters.get("isms_received", 0):
-                return True
-            time.sleep(0.01)
-        return False

@@ -1,12 +1,15 @@
-"""Counters, rates and latency percentiles of a running server (pure, thread-safe)."""
+"""Counters, rates, latency percentiles and rejection log lines of a running server."""
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import Counter, deque
 
 import numpy as np
+
+log = logging.getLogger("sogm_service.rejections")
 
 _LATENCY_WINDOW = 2048
 _RATE_WINDOW_S = 10.0
@@ -65,3 +68,26 @@ class Stats:
     def snapshot(self) -> tuple[dict[str, int], dict[str, int]]:
         with self._lock:
             return dict(self.counters), dict(self.rejected)
+
+
+class Rejections:
+    """Counts each refusal by reason and logs it in one line, at most one a second per reason
+    (the rest are counted and their number said with the next line)."""
+
+    def __init__(self, stats: Stats) -> None:
+        self._stats = stats
+        self._lock = threading.Lock()
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def reject(self, reason: str, text: str) -> None:
+        self._stats.reject(reason)
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(reason, -1e9) < 1.0:
+                self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
+                return
+            extra = self._suppressed.pop(reason, 0)
+            self._last[reason] = now
+        more = f" ({extra} more of this reason suppressed)" if extra else ""
+        log.warning("rejected ISM [%s]: %s%s", reason, text, more)

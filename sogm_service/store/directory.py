@@ -39,6 +39,7 @@ from sogm_service.store.format import (
     read_tile_header,
     tile_file_name,
     tile_from_bytes,
+    tile_header,
     tile_to_bytes,
 )
 from sogm_service.store.protocol import StoreProblem, TileFileInfo
@@ -146,14 +147,7 @@ class DirectoryStore:
     def header_for(self, i: int, j: int, layers: Sequence[str],
                    stamp: float) -> TileHeader:
         """The header this store writes for tile ``(i, j)``."""
-        e = self.expect
-        datum = None
-        if self.plane is not None:
-            span = e.resolution * e.tile_size
-            datum = self.plane.to_geodetic(i * span, j * span)
-        return TileHeader(map_name=e.map_name, frame=e.frame or "map", i=i, j=j,
-                          resolution=e.resolution, tile_size=e.tile_size,
-                          layers=tuple(layers), stamp=float(stamp), datum=datum)
+        return tile_header(self.expect, i, j, layers, stamp, self.plane)
 
     # -- index ----------------------------------------------------------------------------
     def index(self) -> dict[TileIndex, TileFileInfo]:

@@ -41,6 +41,7 @@ import os
 import struct
 import time
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -49,7 +50,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core import logodds
-from sogm_service.core.geodesy import GeoPoint
+from sogm_service.core.geodesy import GeoPoint, LocalTangentPlane
 from sogm_service.core.tiletypes import TileIndex, tile_token
 from sogm_service.wire.errors import TileFormatError
 
@@ -128,6 +129,19 @@ class Expectation:
     resolution: float
     tile_size: int
     frame: str | None = None
+
+
+def tile_header(expect: Expectation, i: int, j: int, layers: Sequence[str], stamp: float,
+                plane: LocalTangentPlane | None = None) -> TileHeader:
+    """The header of tile ``(i, j)`` of the map ``expect`` describes; with a local tangent
+    ``plane`` (the map's datum) it carries the geodetic position of the tile's origin."""
+    datum = None
+    if plane is not None:
+        span = expect.resolution * expect.tile_size
+        datum = plane.to_geodetic(i * span, j * span)
+    return TileHeader(map_name=expect.map_name, frame=expect.frame or "map", i=i, j=j,
+                      resolution=expect.resolution, tile_size=expect.tile_size,
+                      layers=tuple(layers), stamp=float(stamp), datum=datum)
 
 
 def resolution_token(resolution: float) -> str:

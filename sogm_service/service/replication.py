@@ -1,0 +1,109 @@
+"""Whole tiles over Zenoh: ``<prefix>/<map>/tiles/<i>/<j>`` and copying a live peer's map.
+
+``tiles/<i>/<j>`` answers one tile in the store's file format (:mod:`sogm_service.store.format`);
+a get on ``tiles/**`` returns them all.  With ``tiles.replicate_on_start`` a server copies the map
+of a live peer of the same map before it starts answering anything.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import zenoh
+
+from sogm_service.core.geodesy import LocalTangentPlane
+from sogm_service.core.tiletypes import TileIndex
+from sogm_service.service.checkpoints import Checkpointer
+from sogm_service.service.config import ServiceConfig
+from sogm_service.service.mapstate import SharedMap
+from sogm_service.service.stats import Stats
+from sogm_service.store.format import Expectation, tile_from_bytes, tile_header, tile_to_bytes
+from sogm_service.wire.errors import TileFormatError
+from sogm_service.wire.keys import tile_of_key
+
+log = logging.getLogger(__name__)
+
+
+class Replication:
+    """Serves this server's tiles and copies a peer's on start."""
+
+    def __init__(self, config: ServiceConfig, shared: SharedMap, tiles: Checkpointer,
+                 stats: Stats) -> None:
+        self.config = config
+        self.keys = config.keys
+        self.shared = shared
+        self.tiles = tiles
+        self.stats = stats
+        m = config.map
+        self.expect = Expectation(m.name, float(m.resolution), int(m.tile_size), m.frame)
+        self._plane = None if m.datum is None else LocalTangentPlane(m.datum)
+
+    def on_tiles(self, q: zenoh.Query) -> None:
+        """One reply per requested tile, keyed ``.../tiles/<i>/<j>``, in the store format."""
+        with self.shared.locked() as tiled:
+            indices = sorted(tiled.known_tiles())
+        selector = zenoh.KeyExpr(str(q.key_expr))
+        for i, j in indices:
+            tile_key = zenoh.KeyExpr(self.keys.tile(i, j))
+            if not selector.intersects(tile_key):
+                continue
+            blob = self.tile_bytes((i, j))
+            if blob is not None:
+                q.reply(tile_key, blob)
+                self.stats.count("tiles_served")
+
+    def tile_bytes(self, index: TileIndex) -> bytes | None:
+        """A tile as file bytes: the live one if resident, else the stored file."""
+        with self.shared.locked() as tiled:
+            tile = tiled.tiles.get(index)
+            if tile is not None:
+                names, data = tiled.tile_layers(tile)
+                data, stamp = data.copy(), tile.stamp
+        if tile is None:
+            store = self.tiles.store
+            return store.read_bytes(*index) if store is not None else None
+        header = tile_header(self.expect, index[0], index[1], names, stamp, self._plane)
+        return tile_to_bytes(header, data)
+
+    def replicate(self, session: zenoh.Session, timeout: float = 30.0) -> int:
+        """Copy every tile a live server of this map offers on ``tiles/**``.
+
+        Waits (up to ``timeout``) until another server of the map is visible by its liveliness
+        token: right after the session opens, the connection to the peer may not be up yet,
+        and a get then would find nothing and leave this server empty.
+        """
+        if not self._wait_for_peer(session, time.monotonic() + timeout):
+            log.warning("replication: no live server of map %r within %.0f s; starting empty",
+                        self.config.map.name, timeout)
+            return 0
+        copied = 0
+        for reply in session.get(self.keys.all_tiles, timeout=timeout):
+            if reply.ok is None:
+                continue
+            try:
+                tile = tile_from_bytes(reply.ok.payload.to_bytes(), self.expect)
+                if tile.header.index != tile_of_key(str(reply.ok.key_expr)):
+                    raise TileFormatError(f"the reply on {reply.ok.key_expr} holds tile "
+                                          f"{tile.header.index}")
+            except TileFormatError as exc:
+                self.stats.count("replica_tiles_rejected")
+                log.warning("replication: rejected %s: %s", reply.ok.key_expr, exc.reason)
+                continue
+            h = tile.header
+            with self.shared.locked() as tiled:
+                tiled.insert_tile(h.index, list(h.layers), np.array(tile.data), h.stamp,
+                                  saved=False)
+            copied += 1
+        self.stats.count("replica_tiles_copied", copied)
+        log.info("replication: copied %d tiles from a live server", copied)
+        return copied
+
+    def _wait_for_peer(self, session: zenoh.Session, deadline: float) -> bool:
+        while time.monotonic() < deadline:
+            replies = session.liveliness().get(self.keys.all_servers, timeout=1.0)
+            if any(r.ok is not None for r in replies):
+                return True
+            time.sleep(0.2)
+        return False
