@@ -9,23 +9,53 @@ from __future__ import annotations
 
 import argparse
 import gc
-import importlib
 import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-# name -> (module, function taking argv and returning an exit code, help)
-_DELEGATED: dict[str, tuple[str, str, str]] = {
-    "tiles": ("sogm_service.apps.tiletool", "main", "list, export and import stored tiles"),
-    "eval": ("sogm_service.eval.segmentation", "main",
-             "the paper's evaluation: eval supercells (SEVDS vs SEEDS/SLIC/SLICO/LSC)"),
-    "demo": ("sogm_service.apps.demo", "main",
-             "embedded demo: a server and a simulated fleet on 127.0.0.1"),
-    "replay": ("sogm_service.apps.replay", "main", "replay a CARMEN laser log into a map"),
-    "bench": ("sogm_service.bench", "main", "the performance suite"),
+
+# Subcommands that parse their own options.  Each is imported only when it runs (so ``serve``
+# starts fast), through a plain function that tools and mypy can follow.
+def _tiles(argv: list[str]) -> int:
+    from sogm_service.apps import tiletool
+
+    return tiletool.main(argv)
+
+
+def _eval(argv: list[str]) -> int:
+    from sogm_service.eval import segmentation
+
+    return segmentation.main(argv)
+
+
+def _demo(argv: list[str]) -> int:
+    from sogm_service.apps import demo
+
+    return demo.main(argv)
+
+
+def _replay(argv: list[str]) -> int:
+    from sogm_service.apps import replay
+
+    return replay.main(argv)
+
+
+def _bench(argv: list[str]) -> int:
+    from sogm_service import bench
+
+    return bench.main(argv)
+
+
+_DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
+    "tiles": (_tiles, "list, export and import stored tiles"),
+    "eval": (_eval, "the paper's evaluation: eval supercells (SEVDS vs SEEDS/SLIC/SLICO/LSC)"),
+    "demo": (_demo, "embedded demo: a server and a simulated fleet on 127.0.0.1"),
+    "replay": (_replay, "replay a CARMEN laser log into a map"),
+    "bench": (_bench, "the performance suite"),
 }
 
 
@@ -105,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="endpoint (repeatable; default tcp/0.0.0.0:7447)")
     router.add_argument("--config", type=Path, default=None, help="Zenoh JSON5 config")
 
-    for name, (_, _, text) in _DELEGATED.items():
+    for name, (_, text) in _DELEGATED.items():
         d = sub.add_parser(name, help=text, add_help=False)
         d.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
@@ -125,12 +155,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     # Delegated subcommands parse their own options (including -h).
     if argv and argv[0] in _DELEGATED:
-        module, func, _ = _DELEGATED[argv[0]]
         _setup_logging(False)
-        result: int = getattr(importlib.import_module(module), func)(argv[1:])
-        return result
+        return _DELEGATED[argv[0]][0](argv[1:])
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
+    if args.command in _DELEGATED:  # after a global option such as -v
+        return _DELEGATED[args.command][0](args.rest)
     handler = {"serve": _serve, "query": _query, "publish-ism": _publish_ism,
                "schemas": _schemas, "router": _router}[args.command]
     return handler(args)
@@ -251,26 +281,11 @@ def _run_supercells(client: Any, args: argparse.Namespace) -> int:
 
         window.pop("layers", None)
         fused = client.fused(method="max", **window, layers=reply.layers, encoding="prob_f32")
+        from sogm_service.apps.render import draw_graph
+
         cv2.imwrite(str(args.png), draw_graph(reply, fused))
         print(f"wrote {args.png}")
     return 0
-
-
-def draw_graph(reply: Any, fused: Any, scale: int = 3) -> Any:
-    """The supercell graph of a reply (with labels) over a fused map of the same window."""
-    import numpy as np
-
-    from sogm_service.apps.render import supercell_overlay
-
-    g = fused.geometry
-    to_cell = g.world_to_cell()
-    xy = np.array([[n.x, n.y, 1.0] for n in reply.nodes]).reshape(-1, 3)
-    cells = (to_cell @ xy.T).T[:, :2]
-    edges = [(n.id, m) for n in reply.nodes for m in n.neighbors if n.id < m]
-    dominant = np.array([int(np.argmax(n.mean_probability))
-                         if max(n.mean_probability) > 0.51 else -1 for n in reply.nodes])
-    return supercell_overlay(fused.probabilities(), reply.labels.array(), cells, edges,
-                             dominant, len(reply.layers), scale)
 
 
 def _print_grid(result: Any) -> None:

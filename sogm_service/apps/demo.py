@@ -316,7 +316,7 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
 def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path,
                       files: list[str]) -> int | None:
     """The SEVDS graph of a 128 x 128 cell window around the first robot, over the fused map."""
-    from sogm_service.apps.cli import draw_graph
+    from sogm_service.apps.render import draw_graph
 
     if not watcher.poses:
         return None

@@ -7,9 +7,14 @@ distinct muted blue so that "never observed" never reads as "50 % occupied grey"
 from __future__ import annotations
 
 import colorsys
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:  # only for annotations: drawing needs no Zenoh
+    from sogm_service.service.client import GridResult
+    from sogm_service.wire.messages import SupercellReply
 
 UNKNOWN_BGR = (150, 110, 70)
 _UNKNOWN_TOL = 0.5 / 255.0
@@ -89,3 +94,17 @@ def supercell_overlay(background: npt.NDArray, labels: npt.NDArray[np.int32],
         color = (128, 128, 128) if d < 0 else tuple(int(c) for c in colors[d])
         cv2.circle(img, (int(u), int(v)), max(2, scale), color, -1, cv2.LINE_AA)
     return np.ascontiguousarray(img[::-1])
+
+
+def draw_graph(reply: SupercellReply, fused: GridResult, scale: int = 3) -> npt.NDArray[np.uint8]:
+    """The supercell graph of a reply (with labels) over a fused map of the same window."""
+    assert reply.labels is not None, "ask the supercells query for its labels"
+    g = fused.geometry
+    to_cell = g.world_to_cell()
+    xy = np.array([[n.x, n.y, 1.0] for n in reply.nodes]).reshape(-1, 3)
+    cells = (to_cell @ xy.T).T[:, :2]
+    edges = [(n.id, m) for n in reply.nodes for m in n.neighbors if n.id < m]
+    dominant = np.array([int(np.argmax(n.mean_probability))
+                         if max(n.mean_probability) > 0.51 else -1 for n in reply.nodes])
+    return supercell_overlay(fused.probabilities(), reply.labels.array(), cells, edges,
+                             dominant, len(reply.layers), scale)

@@ -1,16 +1,13 @@
 """Offline mapping without Zenoh: simulated robots over a world, or a recorded laser log.
 
-The same pipeline as the map server, in one process: each ISM becomes fixed-point log-odds
-increments (:func:`sogm_service.core.logodds.increments`), is warped into the part of the map
-grid it
-covers (:func:`sogm_service.core.resample.resample_logodds`, biodds by default: the paper's Eq. 5)
-and fused by Eq. 1 (:func:`sogm_service.core.logodds.bayes_update`).  Used by the paper's Section IV
-evaluation and by tests.
+The same map as the server's, in one process: each ISM becomes fixed-point log-odds increments
+(:func:`sogm_service.core.logodds.increments`) and is fused by Eq. 1 into a
+:class:`~sogm_service.core.tiles.TiledMap` (biodds resampling by default, the paper's Eq. 5),
+read back on the world's grid.  Used by the paper's Section IV evaluation and by tests.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -18,8 +15,9 @@ import numpy.typing as npt
 
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.core import logodds
-from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.core.resample import Interp, resample_logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.resample import Interp
+from sogm_service.core.tiles import TiledMap
 from sogm_service.sim.robots import simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
 from sogm_service.sim.worlds import World
@@ -30,51 +28,35 @@ def default_duration(world: World) -> float:
     return 150.0 if world.kind == "tabletop" else 240.0
 
 
-def covering_window(map_geom: GridGeometry, ism_geom: GridGeometry) -> tuple[int, int, int, int]:
-    """``(u0, v0, u1, v1)``: the block of map cells an ISM grid can touch (clipped; may be
-    empty).  Only that block is resampled and updated, not the whole map."""
-    corners = ism_geom.corners()
-    m = map_geom.world_to_cell()
-    uv = corners @ m[:2, :2].T + m[:2, 2]
-    u0 = max(math.floor(uv[:, 0].min()) - 1, 0)
-    v0 = max(math.floor(uv[:, 1].min()) - 1, 0)
-    u1 = min(math.ceil(uv[:, 0].max()) + 2, map_geom.width)
-    v1 = min(math.ceil(uv[:, 1].max()) + 2, map_geom.height)
-    return u0, v0, u1, v1
-
-
 class OfflineMap:
-    """An in-memory SOGM stack (one int16 log-odds layer per name) on one grid."""
+    """The server's tiled map (:class:`~sogm_service.core.tiles.TiledMap`) in one process,
+    read back on one grid: the layers in ``geometry``."""
 
     def __init__(self, geometry: GridGeometry, layers: Sequence[str],
                  eps0: float = logodds.DEFAULT_EPS0, interp: Interp = "biodds") -> None:
         self.geometry = geometry
         self.layers = list(layers)
-        self.state = np.zeros((len(self.layers), *geometry.shape), dtype=logodds.DTYPE)
         self.eps0 = eps0
         self.interp: Interp = interp
-        self.limits = logodds.clamp_limits(eps0)
+        self.tiled = TiledMap("offline", "map", TileLattice(geometry.resolution), eps0)
+        for name in self.layers:
+            self.tiled.layer_id(name, create=True)
 
     def fuse(self, ism: SensorIsm) -> None:
-        """Eq. 1 for one ISM on the map cells it covers (unknown layers are ignored)."""
+        """Eq. 1 for one ISM (unknown layers are ignored)."""
         if ism.layer not in self.layers:
             return
-        u0, v0, u1, v1 = covering_window(self.geometry, ism.geometry)
-        if u1 <= u0 or v1 <= v0:
-            return
-        dst = self.geometry.subgrid(u0, v0, u1 - u0, v1 - v0)
         inc = logodds.increments(ism.prob, logodds.Encoding.PROB_F32, self.eps0)
-        warped = resample_logodds(inc, ism.geometry, dst, self.interp)
-        n = self.layers.index(ism.layer)
-        logodds.bayes_update(self.state[n, v0:v1, u0:u1], warped, self.limits)
+        self.tiled.fuse(ism.layer, inc, ism.geometry, self.interp)
 
     def fuse_all(self, isms: Iterable[SensorIsm]) -> None:
         for ism in isms:
             self.fuse(ism)
 
     def probabilities(self) -> npt.NDArray[np.float32]:
-        """``(N, H, W)`` float32 probabilities (0.5 where nothing was observed)."""
-        return logodds.fixed_to_prob(self.state)
+        """``(N, H, W)`` float32 probabilities on ``geometry`` (0.5 where nothing was
+        observed)."""
+        return logodds.fixed_to_prob(self.tiled.sample(self.geometry, self.layers, "nearest"))
 
 
 def map_world(world: World, seed: int, *, robots: int = 1, duration_s: float | None = None,
