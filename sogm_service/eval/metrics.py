@@ -27,6 +27,16 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+METRICS: tuple[str, ...] = ("pureness", "icv", "ev", "ue", "br")
+METRIC_TITLES: dict[str, str] = {
+    "pureness": "Pureness (Eq. 12, higher is better)",
+    "icv": "Intra-Cluster Variation (lower is better)",
+    "ev": "Explained Variation (higher is better)",
+    "ue": "Undersegmentation Error (lower is better)",
+    "br": "Boundary Recall (higher is better)",
+}
+
+
 
 def _dense(labels: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], int]:
     """Relabel to ``0..k-1`` (labels may be sparse or negative); return the map and ``k``."""
