@@ -38,6 +38,7 @@ from sogm_service.service.client import MapClient
 from sogm_service.sim.robots import SimStep, simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm
 from sogm_service.sim.worlds import World
+from sogm_service.wire import keys
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ class FleetStats:
 
 def ism_key(robot: str, ism: SensorIsm, prefix: str = "ism") -> str:
     """``<prefix>/<robot>/<sensor>/<class>``."""
-    return f"{prefix}/{robot}/{ism.sensor or 'sensor'}/{ism.layer}"
+    return keys.ism_key(prefix, robot, ism.sensor or "sensor", ism.layer)
 
 
 def encode_cells(prob: np.ndarray, encoding: str) -> np.ndarray:
