@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     pub.add_argument("--y", type=float, default=0.0, help="origin y of cell (0,0) corner")
     pub.add_argument("--yaw", type=float, default=0.0, help="origin heading (rad)")
     pub.add_argument("--encoding", default=None,
-                     choices=["prob_u8", "occupancy_i8", "prob_f32"])
+                     choices=["prob_u8", "occupancy_i8", "prob_f32", "prob_u8_v2"])
     pub.add_argument("--layer", default=None, help="layer name (default: key remainder)")
     pub.add_argument("--frame", default="map")
 

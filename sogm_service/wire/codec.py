@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from sogm_service.wire.messages import REJECT_CODES, SCHEMA_MODELS
+from sogm_service.wire.messages import REJECT_CODES, SCHEMA_MODELS, SCHEMA_VERSION
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -106,6 +106,7 @@ def json_schemas() -> dict[str, dict[str, Any]]:
         name = getattr(model, "schema_name", "") or model.__name__
         schema = model.model_json_schema()
         schema["$id"] = f"https://sogm-service/schemas/{name}.json"
+        schema["x-sogm-schema-version"] = SCHEMA_VERSION
         out[name] = schema
     return out
 
