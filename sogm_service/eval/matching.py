@@ -1,6 +1,6 @@
 """Scan matching at a measured operating point: acceptance against wrong corrections.
 
-``sogm-service eval matching [LOG] [--start N] [--stride K] [--min-inliers 6,8,10,12,16] ...``
+``sogm-service eval matching [LOG] [--seed 0,1,2,3] [--min-inliers 6,8,10,12,16] ...``
 runs :func:`evaluate` on a CARMEN log (default: the Intel Research Lab log) and prints the
 trade-off table of :func:`trade_off` (markdown), optionally writing every trial as CSV.
 
@@ -66,11 +66,12 @@ _SCORED = {MatchReason.OK, MatchReason.POOR_AGREEMENT, MatchReason.NO_IMPROVEMEN
 
 @dataclass(frozen=True)
 class Gate:
-    """The acceptance settings evaluated afterwards (the rest of :class:`MatchParams` fixed)."""
+    """The acceptance settings evaluated afterwards (the rest of :class:`MatchParams` fixed);
+    the defaults are :class:`MatchParams`'s."""
 
-    min_inliers: int = 12
-    min_score: float = 0.3
-    min_gain: float = 0.0
+    min_inliers: int = MatchParams().min_inliers
+    min_score: float = MatchParams().min_score
+    min_gain: float = MatchParams().min_gain
 
     def label(self) -> str:
         return f"min_inliers={self.min_inliers} min_score={self.min_score:g} " \
@@ -153,13 +154,17 @@ def permissive(params: MatchParams) -> MatchParams:
 def evaluate(scans: Sequence[LaserScan], variants: dict[str, MatchParams], *,
              start: int = 150, stride: int = 1, seed: int = 0, resolution: float = 0.05,
              usable_range: float = 8.0, max_shift_m: float = 0.3, max_turn_deg: float = 5.0,
-             progress: bool = False) -> list[Trial]:
-    """Run the protocol of the module docstring; one :class:`Trial` per scan and variant."""
+             progress: bool = False, gated: bool = False) -> list[Trial]:
+    """Run the protocol of the module docstring; one :class:`Trial` per scan and variant.
+
+    ``gated``: match with the variants' own acceptance settings instead of the permissive
+    ones (then ``Trial.reason`` is ``match_ism``'s verdict; the tests compare the two).
+    """
     tiled = TiledMap("eval", "map", TileLattice(resolution, 256))
     rng = np.random.default_rng(seed)
     limit = np.array([max_shift_m, max_shift_m, math.radians(max_turn_deg)])
     trials: list[Trial] = []
-    opened = {name: permissive(p) for name, p in variants.items()}
+    opened = {name: (p if gated else permissive(p)) for name, p in variants.items()}
 
     def ism(scan: LaserScan, pose: Pose2D) -> tuple[GridGeometry, np.ndarray]:
         g, p = laser_ism(scan.ranges, scan.angles, pose, resolution,
@@ -262,7 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--limit", type=int, default=None, help="read at most this many scans")
     p.add_argument("--start", type=int, default=150, help="first scan matched (warm-up map)")
     p.add_argument("--stride", type=int, default=1, help="match every k-th scan from --start")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_ints, default=[0],
+                   help="perturbation seeds, e.g. 0,1,2,3: one pass each, pooled in the table")
     p.add_argument("--resolution", type=float, default=0.05)
     p.add_argument("--usable-range", type=float, default=8.0, help="ISM range (m)")
     p.add_argument("--min-inliers", type=_ints, default=[6, 8, 10, 12, 16])
@@ -302,9 +308,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{args.start}", file=sys.stderr)
         return 2
     variants = variants_of(args.ratio, args.margin_cells)
-    trials = evaluate(scans, variants, start=args.start, stride=args.stride, seed=args.seed,
-                      resolution=args.resolution, usable_range=args.usable_range,
-                      progress=not args.quiet)
+    trials = [t for seed in args.seed
+              for t in evaluate(scans, variants, start=args.start, stride=args.stride,
+                                seed=seed, resolution=args.resolution,
+                                usable_range=args.usable_range, progress=not args.quiet)]
     gates = [Gate(k, s, g) for k in args.min_inliers for s in args.min_score
              for g in args.min_gain]
     print(markdown(trade_off(trials, gates)), end="")
