@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -11,11 +12,16 @@ from sogm_service.adapters.carmen import read_carmen
 from sogm_service.adapters.laser import scan_endpoints_world
 from sogm_service.apps.cli import main as cli_main
 from sogm_service.apps.replay import replay_carmen
+from sogm_service.core.geometry import GridGeometry
+from tests.test_carmen import robotlaser_line, room_ranges
 
 pytestmark = pytest.mark.integration
 
-# The repository is checked out with shared/ beside it (here and in CI).
-LOG = Path(__file__).resolve().parents[2] / "shared/data/carmen/intel-corrected.log.gz"
+# The repository is checked out with shared/ beside it (in CI), or the machine's shared data.
+LOG = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/carmen",
+                        Path("/work/shared/data/carmen"))
+            if (p / "intel-corrected.log.gz").exists()),
+           Path("shared/data/carmen")) / "intel-corrected.log.gz"
 
 
 @pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
@@ -49,3 +55,73 @@ def test_replay_command_writes_the_png(tmp_path: Path) -> None:
     png = tmp_path / "intel.png"
     assert cli_main(["replay", "carmen", str(LOG), "--limit", "40", "--png", str(png)]) == 0
     assert png.stat().st_size > 1000
+
+
+# -- logs without usable scans, ROBOTLASER1-only logs, the line summary (issue 19) ---------
+@pytest.mark.parametrize("content", [
+    "# ODOM only\n" + "ODOM 0 0 0 0 0 0 1.0 host 1.0\n" * 20,
+    "",
+    "FLASER 180 1.0\n" * 3,  # malformed only
+])
+def test_a_log_without_usable_scans_is_one_line_and_exit_2(
+        tmp_path: Path, content: str, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "empty.log"
+    log.write_text(content)
+    png = tmp_path / "out.png"
+    assert cli_main(["replay", "carmen", str(log), "--png", str(png)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert "no usable laser scans" in err and "lines:" in err
+    assert not png.exists()
+
+
+def test_limit_zero_is_refused_before_anything_starts(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "one.log"
+    log.write_text(robotlaser_line([1.0, 2.0, 3.0]))
+    assert cli_main(["replay", "carmen", str(log), "--limit", "0",
+                     "--png", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert "--limit is 0" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_robotlaser1_log_replays_into_walls_where_they_are(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A square room (walls at |x|, |y| = 2 m) seen by ROBOTLASER1 lines whose laser pose and
+    angles are their own: the map's walls are on the room's walls, its middle is free."""
+    n = 181
+    lines = ["# ROBOTLASER1 only\n", "PARAM robot_frontlaser_offset 0.1 host 0\n"]
+    k = 0
+    for x, y in ((0.0, 0.0), (0.8, -0.6), (-0.7, 0.9)):
+        for yaw in (0.0, math.pi / 2, math.pi, -math.pi / 2):
+            angles = yaw - math.pi / 2 + math.pi / 180 * np.arange(n)
+            lines.append(f"ODOM {x} {y} {yaw} 0 0 0 {k}.0 host {k}.0\n")
+            lines.append(robotlaser_line(room_ranges(x, y, angles), laser=(x, y, yaw),
+                                         robot=(x - 0.1, y, yaw), stamp=float(k)))
+            k += 1
+    log = tmp_path / "room.log"
+    log.write_text("".join(lines))
+    npy = tmp_path / "room.npy"
+    assert cli_main(["replay", "carmen", str(log), "--png", str(tmp_path / "room.png"),
+                     "--npy", str(npy), "--resolution", "0.05"]) == 0
+    out = capsys.readouterr().out
+    assert f"replayed {k} scans" in out
+    assert f"scans: {k} (ROBOTLASER1 {k})" in out and f"ODOM {k}" in out
+    p = np.load(npy)
+    scans = list(read_carmen(log))
+    result_geometry = _replay_window(scans)
+    centres = result_geometry.cell_centers().reshape((*p.shape, 2))
+    d_wall = 2.0 - np.abs(centres).max(axis=2)  # > 0 inside the room
+    occupied = p > 0.65
+    assert occupied.sum() > 200
+    assert (np.abs(d_wall[occupied]) <= 0.1).all()  # every occupied cell on a wall
+    inside = d_wall > 0.2
+    assert (p[inside] < 0.35).mean() > 0.95  # the room's floor is free
+
+
+def _replay_window(scans: list) -> GridGeometry:  # type: ignore[type-arg]
+    from sogm_service.apps.replay import _bounds_window
+    from sogm_service.core.geometry import window_geometry
+
+    w = _bounds_window(scans, 0.05)
+    return window_geometry(w["x"], w["y"], w["yaw"], w["width"], w["height"], w["resolution"])

@@ -44,4 +44,7 @@ def test_ism_schema_documents_the_required_fields() -> None:
     schema = json.loads((SCHEMAS / "ism.json").read_text(encoding="utf-8"))
     assert set(schema["required"]) == {"resolution", "width", "height", "encoding", "data"}
     assert set(schema["properties"]["encoding"]["enum"]) == {
-        "occupancy_i8", "prob_u8", "prob_f32"}
+        "occupancy_i8", "prob_u8", "prob_f32", "prob_u8_v2"}
+    # Versioned: prob_u8_v2 and NaN-as-unknown came with schema version 2 (documented there).
+    assert schema["x-sogm-schema-version"] == 2
+    assert "255 = unknown" in schema["properties"]["encoding"]["description"]

@@ -109,8 +109,8 @@ BAD_PAYLOADS = {
     "data_length": msgpack.packb({"resolution": 0.1, "width": 2, "height": 2,
                                   "encoding": "prob_u8", "data": b"123"}),
     "non_finite": msgpack.packb({"resolution": 0.1, "width": 1, "height": 1,
-                                 "encoding": "prob_f32",
-                                 "data": np.array([np.nan], np.float32).tobytes()}),
+                                 "encoding": "prob_f32",  # NaN is "unknown" since v2
+                                 "data": np.array([np.inf], np.float32).tobytes()}),
     "non_positive_resolution": msgpack.packb({"resolution": 0.0, "width": 2, "height": 2,
                                               "encoding": "prob_u8", "data": b"1234"}),
     "out_of_range": msgpack.packb({"resolution": 0.1, "width": 2, "height": 1,

@@ -189,31 +189,37 @@ def test_switch_only_when_outside_the_band(steps: list[tuple[float, float]], h: 
 
 # -- geodetic datum -------------------------------------------------------------------------
 def test_one_tile_east_and_north_move_the_datum_by_the_right_angle() -> None:
-    # Textbook WGS-84 lengths at 45 deg: 1 deg of longitude = 78 846.8 m,
-    # 1 deg of latitude = 111 132.95 m.
+    # WGS-84 at 45 deg and 250 m above the ellipsoid: 12.8 m is 12.8 / ((N + h) cos lat) rad
+    # of longitude and 12.8 / (M + h) rad of latitude (to ~1e-6 relative over 12.8 m).
     datum = GeodeticFix(latitude=45.0, longitude=7.0, altitude=250.0)
     tm = TileManager(LATTICE, 1.0, 1, datum=datum)
     origin = tm.tile_datum(0, 0)
     east = tm.tile_datum(1, 0)
     north = tm.tile_datum(0, 1)
+    m, n = radii_of_curvature(45.0)
+    deg_east = math.degrees(12.8 / ((n + 250.0) * math.cos(math.radians(45.0))))
+    deg_north = math.degrees(12.8 / (m + 250.0))
     assert origin == GeoPoint(45.0, 7.0, 250.0)
     assert east is not None and north is not None
-    assert east.longitude - 7.0 == pytest.approx(12.8 / 78846.8, rel=2e-5)
-    assert east.latitude == 45.0 and east.altitude == 250.0
-    assert north.latitude - 45.0 == pytest.approx(12.8 / 111132.95, rel=2e-5)
-    assert north.longitude == 7.0
+    assert east.longitude - 7.0 == pytest.approx(deg_east, rel=1e-6)
+    # The tangent plane leaves the ellipsoid: 12.8^2 / 2R = 13 um up, a hair of latitude.
+    assert east.latitude == pytest.approx(45.0, abs=1e-9)
+    assert east.altitude == pytest.approx(250.0, abs=1e-4)
+    assert north.latitude - 45.0 == pytest.approx(deg_north, rel=1e-6)
+    assert north.longitude == pytest.approx(7.0, abs=1e-12)
     event = tm.update("r", SPAN * 3 + 1.0, -SPAN + 1.0, 0.0)
     assert event is not None and event.datum is not None
     assert event.datum == tm.tile_datum(3, -1)
-    assert event.datum.longitude == pytest.approx(7.0 + 3 * 12.8 / 78846.8, rel=1e-9)
+    assert event.datum.longitude == pytest.approx(7.0 + 3 * deg_east, rel=1e-9)
 
 
 def test_datum_at_the_equator_and_without_a_datum() -> None:
     tm = TileManager(LATTICE, 1.0, 1, datum=GeoPoint(0.0, 0.0))
     east = tm.tile_datum(1, 0)
     assert east is not None
-    # At the equator N = a: 12.8 m is 12.8 / 6378137 rad.
-    assert east.longitude == pytest.approx(math.degrees(12.8 / 6378137.0), rel=1e-12)
+    # At the equator the point 12.8 m east is (a, 12.8, 0) in ECEF: longitude atan2(12.8, a).
+    assert east.longitude == pytest.approx(math.degrees(math.atan2(12.8, 6378137.0)), rel=1e-9)
+    assert east.latitude == pytest.approx(0.0, abs=1e-12)
     plain = TileManager(LATTICE, 1.0, 1)
     assert plain.tile_datum(1, 0) is None
     event = plain.update("r", 1.0, 1.0, 0.0)

@@ -172,3 +172,12 @@ def encode_occupancy_i8(p: npt.ArrayLike) -> npt.NDArray[np.int8]:
     occ = np.rint(np.clip(q, 0, 1) * 100).astype(np.int8)
     occ[q == UNKNOWN_P] = -1
     return occ
+
+
+def encode_prob_u8_v2(p: npt.ArrayLike) -> npt.NDArray[np.uint8]:
+    """Probabilities -> ``prob_u8_v2`` codes: ``round(p * 254)``; exactly 0.5 and NaN -> 255
+    (unknown: the cell is left untouched, as 127 would be too)."""
+    q = np.asarray(p, dtype=np.float64)
+    codes = np.rint(np.clip(np.nan_to_num(q, nan=0.5), 0, 1) * 254).astype(np.uint8)
+    codes[(q == UNKNOWN_P) | np.isnan(q)] = 255
+    return codes

@@ -27,6 +27,10 @@ def _tiles(argv: list[str]) -> int:
 
 
 def _eval(argv: list[str]) -> int:
+    if argv[:1] == ["matching"]:
+        from sogm_service.eval import matching
+
+        return matching.main(argv[1:])
     from sogm_service.eval import segmentation
 
     return segmentation.main(argv)
@@ -52,7 +56,8 @@ def _bench(argv: list[str]) -> int:
 
 _DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
     "tiles": (_tiles, "list, export and import stored tiles"),
-    "eval": (_eval, "the paper's evaluation: eval supercells (SEVDS vs SEEDS/SLIC/SLICO/LSC)"),
+    "eval": (_eval, "evaluations: eval supercells (the paper's, SEVDS vs SEEDS/SLIC/SLICO/"
+                     "LSC), eval matching (scan matching on the Intel log)"),
     "demo": (_demo, "embedded demo: a server and a simulated fleet on 127.0.0.1"),
     "replay": (_replay, "replay a CARMEN laser log into a map"),
     "bench": (_bench, "the performance suite"),
@@ -122,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     pub.add_argument("--y", type=float, default=0.0, help="origin y of cell (0,0) corner")
     pub.add_argument("--yaw", type=float, default=0.0, help="origin heading (rad)")
     pub.add_argument("--encoding", default=None,
-                     choices=["prob_u8", "occupancy_i8", "prob_f32"])
+                     choices=["prob_u8", "occupancy_i8", "prob_f32", "prob_u8_v2"])
     pub.add_argument("--layer", default=None, help="layer name (default: key remainder)")
     pub.add_argument("--frame", default="map")
 

@@ -1,11 +1,12 @@
 """``sogm-service replay carmen FILE``: a recorded laser log replayed into a map server.
 
-Each FLASER scan of the log (with its corrected pose) becomes the ISM of a laser inverse sensor
-model (free along each beam, occupied at the hit, unknown beyond;
-:mod:`sogm_service.adapters.laser`)
-published on ``ism/<robot>/laser/obstacle`` with its pose on ``pose/<robot>``, exactly as a
-live robot would.  Without ``--connect`` the server is embedded (in this process, on
-127.0.0.1); the resulting map is written as a PNG (and optionally ``.npy``).
+Each front-laser scan of the log (FLASER or ROBOTLASER1, with its corrected pose) becomes the
+ISM of a laser inverse sensor model (free along each beam, occupied at the hit, unknown beyond;
+:mod:`sogm_service.adapters.laser`) published on ``ism/<robot>/laser/obstacle`` with its
+pose on ``pose/<robot>``, exactly as a live robot would.  Without ``--connect`` the server is
+embedded (in this process, on 127.0.0.1); the resulting map is written as a PNG (and optionally
+``.npy``).  A log without any usable scan is refused with one line and exit status 2; the
+summary counts every line type read and skipped.
 """
 
 from __future__ import annotations
@@ -28,12 +29,19 @@ class ReplayResult:
     malformed_lines: int
     geometry: Any
     probabilities: npt.NDArray[np.float32]
+    stats: Any = None  # the reader's CarmenStats: every line type read and skipped
+
+
+class NoScansError(ValueError):
+    """The log has no usable laser scan (no FLASER/ROBOTLASER1 line, all malformed, or
+    ``limit <= 0``): nothing to replay.  ``str()`` is one line for the user."""
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sogm-service replay", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="format", required=True)
-    c = sub.add_parser("carmen", help="a CARMEN log (FLASER lines, gzip or plain)")
+    c = sub.add_parser("carmen",
+                       help="a CARMEN log (FLASER or ROBOTLASER1 lines, gzip or plain)")
     c.add_argument("file", type=Path)
     c.add_argument("--connect", default=None,
                    help="endpoint of a running server (default: an embedded one)")
@@ -53,13 +61,19 @@ def main(argv: list[str] | None = None) -> int:
     if not args.file.exists():
         print(f"sogm-service replay: no such file {args.file}", file=sys.stderr)
         return 2
-    result = replay_carmen(args.file, endpoint=args.connect, map_name=args.map,
-                           resolution=args.resolution, limit=args.limit, speed=args.speed,
-                           robot=args.robot)
+    try:
+        result = replay_carmen(args.file, endpoint=args.connect, map_name=args.map,
+                               resolution=args.resolution, limit=args.limit, speed=args.speed,
+                               robot=args.robot)
+    except NoScansError as exc:
+        print(f"sogm-service replay: {args.file}: {exc}", file=sys.stderr)
+        return 2
     _write(result, args.png, args.npy)
     g = result.geometry
     print(f"replayed {result.scans} scans ({result.malformed_lines} malformed lines skipped); "
           f"{result.isms_fused} ISMs fused; map {g.width}x{g.height} cells at {g.resolution} m")
+    if result.stats is not None:
+        print(result.stats.summary())
     print(f"wrote {args.png}" + (f" and {args.npy}" if args.npy else ""))
     return 0
 
@@ -72,6 +86,10 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
 
     stats = CarmenStats()
     scans = list(read_carmen(path, limit=limit, stats=stats))
+    if not scans:
+        raise NoScansError("no usable laser scans (FLASER or ROBOTLASER1) to replay; "
+                           + ("--limit is 0; " if limit is not None and limit <= 0 else "")
+                           + stats.summary())
     if endpoint is not None:
         return _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats)
     from sogm_service.service.config import ServiceConfig
@@ -100,11 +118,14 @@ def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: flo
         layer = f"{robot}/laser/obstacle"
         info = client.info()
         if layer not in info.layers:
+            if not info.layers:
+                raise NoScansError(f"the server fused none of the {len(scans)} scans "
+                                   f"({fused} ISMs fused); {stats.summary()}")
             layer = info.layers[0]
         window = _bounds_window(scans, resolution)
         sub = client.submap(**window, layers=[layer], encoding="prob_f32")
     return ReplayResult(len(scans), fused, stats.malformed, sub.geometry,
-                        sub.probabilities()[0])
+                        sub.probabilities()[0], stats)
 
 
 def _wait_fused(client: Any, n: int, timeout: float = 120.0) -> int:

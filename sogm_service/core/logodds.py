@@ -51,9 +51,10 @@ class Encoding(StrEnum):
     """Cell encodings of ISMs on the wire and of sub-map replies."""
 
     OCCUPANCY_I8 = "occupancy_i8"  # nav_msgs/OccupancyGrid: 0..100 percent, -1 unknown
-    PROB_U8 = "prob_u8"  # p = v / 255
-    PROB_F32 = "prob_f32"  # p in [0, 1]; NaN is not allowed
+    PROB_U8 = "prob_u8"  # p = v / 255 (no exact unknown: kept as it always was)
+    PROB_F32 = "prob_f32"  # p in [0, 1]; NaN = unknown (no update)
     LOGODDS_I16 = "logodds_i16"  # this module's fixed point (reply only)
+    PROB_U8_V2 = "prob_u8_v2"  # 0..254: p = v / 254 (127 = exactly 0.5); 255 = unknown
 
 
 ENCODING_DTYPES: Final[dict[Encoding, np.dtype]] = {
@@ -61,9 +62,16 @@ ENCODING_DTYPES: Final[dict[Encoding, np.dtype]] = {
     Encoding.PROB_U8: np.dtype(np.uint8),
     Encoding.PROB_F32: np.dtype(np.float32),
     Encoding.LOGODDS_I16: np.dtype(np.int16),
+    Encoding.PROB_U8_V2: np.dtype(np.uint8),
 }
 
 OCCUPANCY_UNKNOWN: Final = -1
+
+PROB_U8_V2_UNKNOWN: Final = 255
+"""``prob_u8_v2``: the "no information" code (increment 0: the cell is left untouched)."""
+
+PROB_U8_V2_MAX: Final = 254
+"""``prob_u8_v2``: codes 0..254 are ``p = v / 254`` (so 127 is exactly 0.5, also increment 0)."""
 
 
 def check_eps0(eps0: float) -> float:
@@ -121,6 +129,9 @@ def _lut(encoding: Encoding, eps0: float) -> Fixed:
     codes = np.arange(256)
     if encoding is Encoding.PROB_U8:
         table = prob_to_fixed(codes / 255.0, eps0)
+    elif encoding is Encoding.PROB_U8_V2:
+        p = np.minimum(codes, PROB_U8_V2_MAX) / float(PROB_U8_V2_MAX)
+        table = np.where(codes == PROB_U8_V2_UNKNOWN, 0, prob_to_fixed(p, eps0)).astype(DTYPE)
     elif encoding is Encoding.OCCUPANCY_I8:
         signed = codes.astype(np.uint8).view(np.int8).astype(np.int64)
         valid = (signed >= 0) & (signed <= 100)
@@ -137,7 +148,8 @@ def increment_lut(encoding: Encoding | str, eps0: float = DEFAULT_EPS0) -> Fixed
 
     ``occupancy_i8``: 0..100 percent -> ``logit(clip(v / 100))``; -1 (unknown) and the invalid
     codes 101..127, -128..-2 -> 0, i.e. the cell is left untouched (the codec rejects invalid
-    codes before they get here).  ``prob_u8``: ``logit(clip(v / 255))``.
+    codes before they get here).  ``prob_u8``: ``logit(clip(v / 255))``.  ``prob_u8_v2``:
+    ``logit(clip(v / 254))`` for 0..254 (127 -> exactly 0), 255 (unknown) -> 0.
     """
     return _lut(Encoding(encoding), check_eps0(eps0))
 
@@ -149,6 +161,9 @@ def increments(
     encoding = Encoding(encoding)
     if encoding is Encoding.PROB_F32:
         p = np.asarray(data, dtype=np.float32)
+        unknown = np.isnan(p)
+        if unknown.any():  # NaN is "no information": increment 0, the cell is untouched
+            return np.where(unknown, DTYPE(0), prob_to_fixed(np.where(unknown, 0.5, p), eps0))
         return prob_to_fixed(p, eps0)
     if encoding is Encoding.LOGODDS_I16:
         return np.clip(data, -MAX_STATE, MAX_STATE).astype(DTYPE)
@@ -214,6 +229,10 @@ def _encode_direct(l: npt.NDArray, encoding: Encoding) -> npt.NDArray:
         return p
     if encoding is Encoding.PROB_U8:
         return np.rint(p * 255.0).astype(np.uint8)
+    if encoding is Encoding.PROB_U8_V2:
+        v2 = np.rint(p * float(PROB_U8_V2_MAX)).astype(np.uint8)
+        v2[l == 0] = PROB_U8_V2_UNKNOWN
+        return v2
     occ = np.rint(p * 100.0).astype(np.int8)
     occ[l == 0] = OCCUPANCY_UNKNOWN
     return occ
@@ -235,7 +254,8 @@ def _encode_table(encoding: Encoding) -> npt.NDArray:
 def encode_fixed(l: npt.ArrayLike, encoding: Encoding | str) -> npt.NDArray:
     """Fixed log-odds (any int dtype) -> an output encoding for replies.
 
-    ``occupancy_i8`` writes -1 where the cell is exactly unknown (l == 0).  Values beyond the
+    ``occupancy_i8`` writes -1 and ``prob_u8_v2`` 255 where the cell is exactly unknown
+    (l == 0).  Values beyond the
     int16 range (Eq. 6 sums of many layers) encode as the int16 extremes: P is 0 or 1 there
     at every output precision.
     """
@@ -248,12 +268,16 @@ def encode_fixed(l: npt.ArrayLike, encoding: Encoding | str) -> npt.NDArray:
 
 
 def decode_to_prob(data: npt.NDArray, encoding: Encoding | str) -> npt.NDArray[np.float32]:
-    """Any encoding -> probability (unknown occupancy cells -> 0.5)."""
+    """Any encoding -> probability (unknown cells -> 0.5; NaN stays NaN in ``prob_f32``)."""
     encoding = Encoding(encoding)
     if encoding is Encoding.PROB_F32:
         return np.asarray(data, dtype=np.float32)
     if encoding is Encoding.PROB_U8:
         return (np.asarray(data, dtype=np.float32) / 255.0).astype(np.float32)
+    if encoding is Encoding.PROB_U8_V2:
+        v = np.asarray(data)
+        p = v.astype(np.float32) / np.float32(PROB_U8_V2_MAX)
+        return np.where(v == PROB_U8_V2_UNKNOWN, np.float32(0.5), p).astype(np.float32)
     if encoding is Encoding.LOGODDS_I16:
         return fixed_to_prob(data)
     occ = np.asarray(data, dtype=np.float32) / 100.0

@@ -135,6 +135,10 @@ class MatchParams:
     min_overlap: int = 200  # cells known in both needed for the quality check
     min_gain: float = 0.0  # score_after must be >= score_before + min_gain
     min_score: float = 0.3  # and >= this
+    # Window (step 0): cells of map beyond the reach of the largest accepted correction, so
+    # that map keypoints near that reach are described from real cells (``[ism.matching]
+    # margin_m`` of the service config).
+    window_extra: float = 0.0
 
     def __post_init__(self) -> None:
         if self.model not in ("partial_affine", "homography"):
@@ -150,6 +154,8 @@ class MatchParams:
             raise ValueError("need 0 <= free_level < unknown_level < occupied_level <= 255")
         if self.saturation <= 0 or self.known_threshold < 0:
             raise ValueError("saturation must be > 0 and known_threshold >= 0")
+        if not (math.isfinite(self.window_extra) and self.window_extra >= 0):
+            raise ValueError(f"window_extra must be >= 0, got {self.window_extra}")
 
     def window_margin(self, ism_width: int, ism_height: int) -> int:
         """Cells of map to add around the claimed ISM so any acceptable correction stays inside.
@@ -159,7 +165,7 @@ class MatchParams:
         """
         r = 0.5 * math.hypot(ism_width, ism_height)
         swing = 2.0 * r * math.sin(0.5 * self.max_rotation)
-        return math.ceil(self.max_translation + swing + self.gate_slack)
+        return math.ceil(self.max_translation + swing + self.gate_slack + self.window_extra)
 
 
 @dataclass(frozen=True, slots=True)

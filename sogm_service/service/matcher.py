@@ -42,7 +42,8 @@ def match_params(settings: MatchingSettings, resolution: float) -> MatchParams:
         model="homography" if settings.model == "homography" else "partial_affine",
         min_inliers=settings.min_inliers,
         max_translation=settings.max_translation_m / resolution,
-        max_rotation=math.radians(settings.max_rotation_deg))
+        max_rotation=math.radians(settings.max_rotation_deg),
+        window_extra=settings.margin_m / resolution)
 
 
 class Matcher:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
-from sogm_service.adapters.laser import encode_occupancy_i8, encode_prob_u8
+from sogm_service.adapters.laser import encode_occupancy_i8, encode_prob_u8, encode_prob_u8_v2
 from sogm_service.core.geometry import Pose2D
 from sogm_service.service.client import MapClient
 from sogm_service.sim.robots import SimStep, simulate
@@ -65,6 +65,8 @@ def encode_cells(prob: np.ndarray, encoding: str) -> np.ndarray:
         return encode_occupancy_i8(prob)
     if encoding == "prob_u8":
         return encode_prob_u8(prob)
+    if encoding == "prob_u8_v2":
+        return encode_prob_u8_v2(prob)
     if encoding == "prob_f32":
         return np.asarray(prob, dtype=np.float32)
     raise ValueError(f"unknown ISM encoding {encoding!r}")

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ValidationError
 
 from sogm_service.wire.errors import DECODE_CODES, DecodeError
 from sogm_service.wire.limits import MAX_MSGPACK_STR, MAX_PAYLOAD_BYTES
-from sogm_service.wire.messages import SCHEMA_MODELS
+from sogm_service.wire.messages import SCHEMA_MODELS, SCHEMA_VERSION
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -95,6 +95,7 @@ def json_schemas() -> dict[str, dict[str, Any]]:
         name = getattr(model, "schema_name", "") or model.__name__
         schema = model.model_json_schema()
         schema["$id"] = f"https://sogm-service/schemas/{name}.json"
+        schema["x-sogm-schema-version"] = SCHEMA_VERSION
         out[name] = schema
     return out
 

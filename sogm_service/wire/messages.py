@@ -28,8 +28,21 @@ from sogm_service.core.sevds import BOUNDS as _SEVDS_BOUNDS
 from sogm_service.core.sevds import Criterion, SevdsParams
 from sogm_service.wire.limits import MAX_ISM_CELLS
 
-IsmEncoding = Literal["occupancy_i8", "prob_u8", "prob_f32"]
-OutputEncoding = Literal["prob_u8", "prob_f32", "logodds_i16", "occupancy_i8"]
+SCHEMA_VERSION = 2
+"""Version of the wire schemas (``x-sogm-schema-version`` in ``schemas/*.json``).  Version 2
+added the ``prob_u8_v2`` encoding and NaN as "unknown" in ``prob_f32``; every version-1
+message is a valid version-2 message with the same meaning."""
+
+IsmEncoding = Literal["occupancy_i8", "prob_u8", "prob_f32", "prob_u8_v2"]
+OutputEncoding = Literal["prob_u8", "prob_f32", "logodds_i16", "occupancy_i8", "prob_u8_v2"]
+
+ENCODING_DESCRIPTION = (
+    "Cell encoding. occupancy_i8: nav_msgs/OccupancyGrid, 0..100 percent, -1 = unknown. "
+    "prob_u8: p = v / 255 (the original 8-bit encoding, unchanged; it has no exact unknown: "
+    "128 is p = 0.502). prob_u8_v2 (added in schema version 2): 0..254 is p = v / 254 "
+    "(127 is exactly 0.5), 255 = unknown; both 127 and 255 leave a cell untouched. "
+    "prob_f32: p in [0, 1], NaN = unknown (no update; rejected before schema version 2). "
+    "logodds_i16 (replies only): log-odds in units of 1/1000 nat.")
 FusionMethod = Literal["bayes", "max"]
 
 StrictInt = Annotated[int, Strict()]
@@ -111,7 +124,7 @@ class IsmMessage(WireModel):
     origin: PoseModel = PoseModel()
     width: StrictInt
     height: StrictInt
-    encoding: IsmEncoding
+    encoding: Annotated[IsmEncoding, Field(description=ENCODING_DESCRIPTION)]
     data: StrictBytes
 
     @field_validator("resolution")
@@ -158,9 +171,11 @@ class IsmMessage(WireModel):
 
 def _check_cell_values(a: npt.NDArray, encoding: str) -> None:
     if encoding == "prob_f32":
-        if not np.isfinite(a).all():
-            raise PydanticCustomError("non_finite", "prob_f32 data holds NaN or infinity")
-        if a.size and (a.min() < 0.0 or a.max() > 1.0):
+        # NaN is "unknown" (no update); infinities are refused.  NaN compares False, so the
+        # range test below passes it and catches everything else outside [0, 1].
+        if np.isinf(a).any():
+            raise PydanticCustomError("non_finite", "prob_f32 data holds an infinity")
+        if a.size and bool(((a < 0.0) | (a > 1.0)).any()):
             raise PydanticCustomError("out_of_range", "prob_f32 data outside [0, 1]")
     elif encoding == "occupancy_i8":
         bad = (a < -1) | (a > 100)
