@@ -21,13 +21,17 @@ import itertools
 import json
 import os
 import re
+import signal
 import stat
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import zenoh
 from cryptography import x509
@@ -35,7 +39,8 @@ from cryptography.x509.oid import NameOID
 
 from sogm_service.apps import certs
 from sogm_service.apps.certs import Pki, init_pki, load_ca, make_ca, make_identity
-from sogm_service.service.session import free_tcp_endpoint
+from sogm_service.service.client import MapClient
+from sogm_service.service.session import free_tcp_endpoint, wait_listening
 
 pytestmark = pytest.mark.integration
 
@@ -83,6 +88,7 @@ def payloads(session: zenoh.Session, key: str) -> list[bytes]:
         if reply.ok is not None:
             out.append(reply.ok.payload.to_bytes())
         else:
+            assert reply.err is not None
             out.append(b"ERR:" + reply.err.payload.to_bytes())
     return out
 
@@ -524,3 +530,82 @@ def test_templates_match_the_generator_and_work(tmp_path: Path) -> None:
         assert heard.with_payload(forged) == []
         q.undeclare()
         sub.undeclare()
+
+
+# --------------------------------------------------------------------------- the real server
+
+@dataclass
+class RealSite:
+    pki: Pki
+    proc: subprocess.Popen[bytes]
+    log: Path
+
+
+@pytest.fixture(scope="module")
+def real_site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealSite]:
+    """``sogm-service serve`` as a child process, its Zenoh session from the server identity's
+    generated config (``[zenoh] config_file``; it listens and enforces the access control)."""
+    d = tmp_path_factory.mktemp("real")
+    pki = init_pki(d / "pki", server_names=["srv"], robot_names=["robotA", "robotB"],
+                   viewer_names=["view"], endpoint=tls_endpoint())
+    toml = d / "serve.toml"
+    toml.write_text(f'[zenoh]\nconfig_file = "{pki.config("srv")}"\n', encoding="utf-8")
+    log = d / "serve.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "sogm_service", "serve", "--config", str(toml)],
+            stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        wait_listening(pki.endpoint.replace("tls/", "tcp/", 1), 60, lambda: proc.poll() is not None,
+                       lambda: log.read_text(errors="replace"))
+        with MapClient(open_file(pki.config("robotA")), timeout=1.0, owns_session=True) as c:
+            up = _eventually(lambda: proc.poll() is None and len(c.servers()) == 1, tries=300)
+        assert up, log.read_text(errors="replace")
+        yield RealSite(pki, proc, log)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+
+
+def client_as(site: RealSite, name: str) -> MapClient:
+    return MapClient(open_file(site.pki.config(name)), timeout=GET_TIMEOUT, owns_session=True)
+
+
+def test_real_server_fuses_only_a_robots_own_isms(real_site: RealSite) -> None:
+    grid = np.full((32, 32), 230, np.uint8)
+    with client_as(real_site, "robotA") as robot, client_as(real_site, "view") as viewer:
+        before = robot.stats().counters.get("isms_fused", 0)
+        # Forged first, over the same tiles as the robot's own ISM that follows.
+        robot.publish_ism("ism/robotB/laser/obstacle", grid, resolution=0.05, robot="robotB")
+        viewer.publish_ism("ism/view/laser/obstacle", grid, resolution=0.05)
+        viewer.publish_ism("ism/robotA/laser/person", grid, resolution=0.05)
+        robot.publish_ism("ism/robotA/laser/obstacle", grid, resolution=0.05)
+        assert _eventually(lambda: robot.stats().counters.get("isms_fused", 0) > before,
+                           tries=100)
+        counters = robot.stats().counters
+        assert counters.get("isms_fused", 0) == before + 1
+        assert counters.get("isms_rejected", 0) == 0
+        assert viewer.info().layers == ["robotA/laser/obstacle"]
+        assert robot.tiles() == {}  # tiles/** is for servers only
+        assert viewer.tiles(0, 0) == {}
+
+
+def test_real_server_impostor_answers_no_query(real_site: RealSite) -> None:
+    with client_as(real_site, "robotB") as impostor, client_as(real_site, "robotA") as robot:
+        q = impostor.session.declare_queryable(
+            "sogm/default/submap", lambda q: q.reply(q.key_expr, b"not msgpack"))
+        token = impostor.session.liveliness().declare_token("sogm/default/@server/fake")
+        assert impostor.servers() != []  # a round trip: the node has seen the declarations
+        answers = [payloads(robot.session, "sogm/default/submap?width=1;height=1")
+                   for _ in range(20)]
+        assert [len(a) for a in answers] == [1] * 20  # one answer each: the server's
+        assert all(a[0] != b"not msgpack" and not a[0].startswith(b"ERR:") for a in answers)
+        assert robot.submap(width=1.0, height=1.0).layers is not None  # decodes
+        assert len(robot.servers()) == 1 and "fake" not in robot.servers()
+        token.undeclare()
+        q.undeclare()
