@@ -277,6 +277,13 @@ def test_cli_init_add_renew_and_refusals(tmp_path: Path, capsys: pytest.CaptureF
         < dt.timedelta(days=31)
     assert certs.main(["show", str(d)]) == 0
     assert "r2" in capsys.readouterr().out
+    assert certs.main(["remove", str(d), "r2"]) == 0
+    assert not (d / "r2.key").exists() and not (d / "r2.json5").exists()
+    acl = config_dict(d / "srv.json5")["access_control"]
+    assert not any("r2" in json.dumps(x) for x in acl["subjects"] + acl["rules"])
+    capsys.readouterr()
+    assert certs.main(["remove", str(d), "srv"]) == 2  # the only server
+    assert "needed" in capsys.readouterr().err
     capsys.readouterr()
     for bad in (["init", str(tmp_path / "a"), "--server", "a/b"],
                 ["init", str(tmp_path / "b"), "--server", "s", "--robot", "r*"],
@@ -470,6 +477,74 @@ def test_viewer_cannot_put_and_sees_poses(site: Site) -> None:
         sub.undeclare()
     assert site.heard.with_payload(forged) == []
     assert site.heard.payloads_of("pose/robotA").count(pose) == 1
+
+
+def _stand_in(path: Path) -> tuple[zenoh.Session, Recorder]:
+    server = open_file(path)
+    heard = Recorder()
+    server.declare_subscriber("**", heard)
+    server.declare_queryable("sogm/default/submap", lambda q: q.reply(q.key_expr, b"server"))
+    return server, heard
+
+
+def test_added_robot_and_removed_robot_after_a_restart(tmp_path: Path) -> None:
+    pki = init_pki(tmp_path, server_names=["srv"], robot_names=["robotA"],
+                   endpoint=tls_endpoint())
+    (tmp_path / "keep").mkdir()
+    for ext in ("crt", "key"):  # robotA keeps its files when the site drops it
+        (tmp_path / "keep" / f"robotA.{ext}").write_bytes(
+            (tmp_path / f"robotA.{ext}").read_bytes())
+    old_a = with_identity(config_dict(pki.config("robotA")), tmp_path / "keep" / "robotA.crt",
+                          tmp_path / "keep" / "robotA.key")
+    certs.add_identity(tmp_path, "robotC")
+    certs.remove_identity(tmp_path, "robotA")
+    server, heard = _stand_in(pki.config("srv"))  # (re)started with the new rules
+    try:
+        own, forged = tag("own"), tag("forged")
+        with open_dict(old_a) as dropped:  # still a valid certificate of the site CA ...
+            dropped.put("ism/robotA/x", forged)  # ... but no rule for its name any more
+            assert payloads(dropped, "sogm/default/submap") == []
+        with open_file(pki.config("robotC")) as robot:
+            robot.put("ism/robotA/x", forged)
+            robot.put("ism/robotC/x", own)
+            assert heard.wait_for("ism/robotC/x", own)
+            assert payloads(robot, "sogm/default/submap") == [b"server"]
+        assert heard.with_payload(forged) == []
+    finally:
+        server.close()
+
+
+def test_a_ca_bundle_admits_both_cas_for_a_rollover(tmp_path: Path) -> None:
+    """CA rotation relies on a root_ca_certificate file holding the old and the new CA."""
+    pki = init_pki(tmp_path, server_names=["srv"], robot_names=["robotA"],
+                   endpoint=tls_endpoint())
+    new = make_ca("next site CA")
+    bundle = tmp_path / "bundle.crt"
+    bundle.write_bytes(pki.ca_cert.read_bytes()
+                       + new.cert.public_bytes(certs.serialization.Encoding.PEM))
+    cert, key = make_identity(new, "robotA")
+    certs.write_cert(tmp_path / "new.crt", cert)
+    certs.write_key(tmp_path / "new.key", key)
+    srv_cfg = config_dict(pki.config("srv"))
+    srv_cfg["transport"]["link"]["tls"]["root_ca_certificate"] = str(bundle)
+    robot_new = with_identity(config_dict(pki.config("robotA")), tmp_path / "new.crt",
+                              tmp_path / "new.key")
+    robot_new["transport"]["link"]["tls"]["root_ca_certificate"] = str(bundle)
+    server = open_file(pki.config("srv"))  # trusting the old CA alone: refused
+    try:
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            open_dict(robot_new)
+    finally:
+        server.close()
+    server = open_dict(srv_cfg)
+    try:
+        server.declare_queryable("sogm/default/submap",
+                                 lambda q: q.reply(q.key_expr, b"server"))
+        for cfg in (config_dict(pki.config("robotA")), robot_new):  # old and new certificate
+            with open_dict(cfg) as robot:
+                assert payloads(robot, "sogm/default/submap") == [b"server"]
+    finally:
+        server.close()
 
 
 # --------------------------------------------------------------------------- deploy/secure

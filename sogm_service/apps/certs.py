@@ -496,6 +496,25 @@ def renew_identity(directory: Path | str, name: str, days: int | None = None) ->
     return pki
 
 
+def remove_identity(directory: Path | str, name: str) -> Pki:
+    """Drop ``name`` from the site: delete its key, certificate and config and rewrite the
+    access control without it (restart the node that carries it).  Its certificate still
+    passes mutual TLS until it expires, but its common name matches no rule: default deny.
+    Never reissue a removed name while its old certificate is valid (the rules are by name)."""
+    pki = Pki.load(Path(directory))
+    if name not in pki.names():
+        raise PkiError("unknown_name", f"{name!r} is not an identity of {pki.directory}")
+    if name == pki.router or pki.servers == [name]:
+        raise PkiError("needed", f"{name!r} is the router or the only server")
+    for lst in (pki.servers, pki.robots, pki.viewers):
+        if name in lst:
+            lst.remove(name)
+    for path in (pki.key(name), pki.cert(name), pki.config(name)):
+        path.unlink(missing_ok=True)
+    write_configs(pki)
+    return pki
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="sogm-service certs",
@@ -531,6 +550,9 @@ def build_parser() -> argparse.ArgumentParser:
     renew.add_argument("dir", type=Path)
     renew.add_argument("name")
     renew.add_argument("--days", type=int, default=None)
+    remove = sub.add_parser("remove", help="drop an identity from the site's access control")
+    remove.add_argument("dir", type=Path)
+    remove.add_argument("name")
     show = sub.add_parser("show", help="list the identities and their certificates' validity")
     show.add_argument("dir", type=Path)
     return p
@@ -568,6 +590,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "access-control rules", file=sys.stderr)
         elif args.action == "renew":
             pki = renew_identity(args.dir, args.name, args.days)
+        elif args.action == "remove":
+            pki = remove_identity(args.dir, args.name)
+            print(f"removed {args.name!r}; restart {pki.acl_holder!r} to load the new "
+                  "access-control rules", file=sys.stderr)
         else:
             pki = Pki.load(args.dir)
     except PkiError as e:
