@@ -332,8 +332,14 @@ def access_control(pki: Pki) -> dict[str, Any]:
     rule("discover-in", "ingress", ["liveliness_query", "declare_liveliness_subscriber"],
          [servers_token])
     rule("discover-out", "egress", ["liveliness_token"], [servers_token])
-    shared = ["read-query", "read-reply", "events-sub", "events-put", "discover-in",
-              "discover-out"]
+    # Let clients know the servers' queryables (never tiles/**) ...
+    rule("read-decl", "egress", ["declare_queryable"], reads)
+    shared = ["read-query", "read-reply", "read-decl", "events-sub", "events-put",
+              "discover-in", "discover-out"]
+    # ... and, for robots, the servers' subscriptions: a client's declared publisher sends
+    # only when it knows a matching subscriber (without this, MapClient.publish_ism's puts
+    # are dropped at the robot). It tells the robot that someone listens, nothing more.
+    rule("ingest-decl", "egress", ["declare_subscriber"], ["ism/**", "pose/**"])
 
     for robot in pki.robots:
         own = [rule(f"robot-{robot}-put", "ingress", ["put"], [f"ism/{robot}/**",
@@ -343,7 +349,7 @@ def access_control(pki: Pki) -> dict[str, Any]:
                rule(f"robot-{robot}-rej-put", "egress", ["put"],
                     [f"{base}/rejections/{robot}"])]
         subjects.append({"id": f"robot-{robot}", "cert_common_names": [robot]})
-        policies.append({"id": f"robot-{robot}", "rules": [*shared, *own],
+        policies.append({"id": f"robot-{robot}", "rules": [*shared, "ingest-decl", *own],
                          "subjects": [f"robot-{robot}"]})
 
     if pki.viewers:
