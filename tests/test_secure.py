@@ -42,7 +42,7 @@ from sogm_service.apps.certs import Pki, init_pki, load_ca, make_ca, make_identi
 from sogm_service.service.client import MapClient
 from sogm_service.service.session import free_tcp_endpoint, wait_listening
 from sogm_service.wire import codec
-from sogm_service.wire.messages import GridReply
+from sogm_service.wire.messages import GridReply, PoseMessage
 
 pytestmark = pytest.mark.integration
 
@@ -710,3 +710,15 @@ def test_real_server_impostor_answers_no_query(real_site: RealSite) -> None:
         assert len(robot.servers()) == 1 and "fake" not in robot.servers()
         token.undeclare()
         q.undeclare()
+
+
+@pytest.mark.xfail(strict=True, reason="serve takes the robot's name from the pose's payload "
+                   "(msg.robot), not from its key: the access control holds the key only")
+def test_real_server_a_robot_cannot_move_another_robot(real_site: RealSite) -> None:
+    forged = PoseMessage(robot="robotB", frame="map", stamp=1.0, x=50.0, y=50.0, yaw=0.0)
+    with client_as(real_site, "robotA") as robot:
+        robot.publish_raw("pose/robotA", codec.encode(forged))  # its own key, another's name
+        robot.publish_pose("robotA", 1.0, 1.0, stamp=2.0)  # the fence: same key, later
+        assert _eventually(lambda: "robotA" in {e.robot for e in robot.robots().robots},
+                           tries=100)
+        assert "robotB" not in {e.robot for e in robot.robots().robots}
