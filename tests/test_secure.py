@@ -296,10 +296,15 @@ def test_cli_init_add_renew_and_refusals(tmp_path: Path, capsys: pytest.CaptureF
                 ["init", str(tmp_path / "d"), "--server", "s", "--endpoint", "tcp/x:1"],
                 ["init", str(tmp_path / "e"), "--server", "s", "--map", "a/b"],
                 ["init", str(tmp_path / "f"), "--server", "ca"],
+                ["init", str(tmp_path / "g"), "--server", "s", "--san", "a b"],
                 ["add", str(tmp_path / "nowhere"), "--robot", "r"]):
         assert certs.main(bad) == 2, bad
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "pki.json").write_text("[1, 2")
+    assert certs.main(["add", str(tmp_path / "broken"), "--robot", "r"]) == 2
     err = capsys.readouterr().err
-    for code in ("bad_name", "duplicate_name", "bad_endpoint", "bad_map", "no_pki"):
+    for code in ("bad_name", "duplicate_name", "bad_endpoint", "bad_map", "bad_san", "no_pki",
+                 "bad_manifest"):
         assert code in err
     assert not (tmp_path / "a").exists()
 

@@ -272,8 +272,15 @@ class Pki:
             d = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError as e:
             raise PkiError("no_pki", f"{path} not found: run `certs init` first") from e
+        except (OSError, ValueError) as e:
+            raise PkiError("bad_manifest", f"{path}: {e}") from e
+        if not isinstance(d, dict):
+            raise PkiError("bad_manifest", f"{path}: not a JSON object")
         d["directory"] = Path(directory).resolve()
-        return cls(**d)
+        try:
+            return cls(**d)
+        except TypeError as e:
+            raise PkiError("bad_manifest", f"{path}: {e}") from e
 
 
 def _check_name(name: str) -> None:
@@ -281,6 +288,14 @@ def _check_name(name: str) -> None:
         raise PkiError("bad_name", f"{name!r}: an identity name is 1-63 letters, digits, "
                                    "'_', '.', '-' (not starting with a punctuation mark), and "
                                    "not 'ca' or 'pki'")
+
+
+_SAN_RE = re.compile(r"^[A-Za-z0-9*][A-Za-z0-9.\-:*]{0,252}$")
+
+
+def _check_san(san: str) -> None:
+    if not _SAN_RE.match(san):
+        raise PkiError("bad_san", f"{san!r}: a SAN is a DNS name or an IP address")
 
 
 def _check_endpoint(endpoint: str) -> None:
@@ -449,6 +464,8 @@ def init_pki(directory: Path | str, *, server_names: Sequence[str],
     if dupes:
         raise PkiError("duplicate_name", f"identities named more than once: {dupes}")
     _check_endpoint(endpoint)
+    for san in sans:
+        _check_san(san)
     _check_map(map_name, prefix)
     if days <= 0:
         raise PkiError("bad_days", f"days must be positive, not {days}")
