@@ -1,0 +1,630 @@
+"""A development PKI for a secure site: ``sogm-service certs init|add|show``.
+
+It writes, into one directory,
+
+- ``ca.crt`` / ``ca.key``: a site certificate authority (EC P-256, self-signed);
+- ``<name>.crt`` / ``<name>.key``: one certificate and key per identity (server, router, robot,
+  viewer), common name = the name, subject alternative names ``localhost``, ``127.0.0.1`` and
+  any extra ``--san``; usable for both ends of a TLS link (server and client authentication);
+- ``<name>.json5``: a ready Zenoh configuration per identity, with absolute paths, mutual TLS
+  (``transport/link/tls`` with ``enable_mtls``), multicast scouting off, the mode and endpoint of
+  the identity's role, and -- on the node everyone connects to (the first server, or the router
+  when there is one) -- the ``access_control`` rules below, keyed by certificate common name;
+- ``pki.json``: the manifest (roles, endpoint, map, prefix, extra SANs) that ``certs add`` reads
+  to issue a new identity with the same CA and to rewrite the access-control configs.
+
+Topology.  Without a router the first server is a Zenoh *peer* listening on the endpoint, and
+everyone else (further servers, robots, viewers) connects to it.  With ``--router NAME`` the
+router (mode ``router``) listens on the endpoint and carries the access control; servers, robots
+and viewers are *clients* of it (a client opens no listener, so nothing reaches a server except
+through the router's checks).
+
+Access control (default deny, by certificate common name, on the listening node):
+
+- a robot ``R`` may put only on ``ism/R/**`` and ``pose/R``; may query
+  ``<prefix>/<map>/{submap,fused,supercells,info,stats,robots}``; may subscribe to
+  ``<prefix>/<map>/events/**`` and ``<prefix>/<map>/rejections/R``; may look up and watch the
+  servers' liveliness tokens ``<prefix>/<map>/@server/*``;
+- a viewer may do the same queries, event subscriptions and liveliness look-ups, and subscribe
+  to ``pose/**``; it may put, delete, declare or reply nothing;
+- server (and router) identities may do everything: they are the only ones that may declare
+  queryables, publish under ``<prefix>/<map>/**``, hold ``<prefix>/<map>/@server/*`` tokens and
+  read ``<prefix>/<map>/tiles/**``;
+- anything not listed is refused, in both directions (ingress rules say what an identity may
+  send, egress rules what it may receive).
+
+This is a development and test PKI: the CA key sits next to the certificates, unencrypted (mode
+0600).  With a real PKI, give the Zenoh configs your own CA, certificates and keys (the templates
+in ``deploy/secure/`` show every field) and keep the access-control rules keyed by the common
+names your CA issues.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import ipaddress
+import json
+import os
+import re
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+ROLES = ("server", "router", "robot", "viewer")
+MANIFEST = "pki.json"
+DEFAULT_ENDPOINT = "tls/localhost:7447"
+DEFAULT_DAYS = 365
+CA_DAYS = 3650
+# The queryables a robot or viewer may ask (under <prefix>/<map>/).
+READ_QUERIES = ("submap", "fused", "supercells", "info", "stats", "robots")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,62}$")
+_RESERVED = {"ca", "pki"}
+
+
+class PkiError(ValueError):
+    """A refused PKI request; ``code`` is a short machine-readable reason."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+
+
+# --------------------------------------------------------------------------- certificates
+
+@dataclass(frozen=True)
+class CertificateAuthority:
+    """A CA certificate and its private key."""
+
+    cert: x509.Certificate
+    key: ec.EllipticCurvePrivateKey
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+def _name(common_name: str, organization: str) -> x509.Name:
+    return x509.Name([
+        x509.NameAttribute(NameOID.ORGANIZATION_NAME, organization),
+        x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+    ])
+
+
+def make_ca(common_name: str = "sogm-service dev CA", *, days: int = CA_DAYS,
+            organization: str = "sogm-service site") -> CertificateAuthority:
+    """A new self-signed CA (EC P-256), valid from one minute ago for ``days`` days."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = _name(common_name, organization)
+    start = _now() - dt.timedelta(minutes=1)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name).issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start).not_valid_after(start + dt.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.KeyUsage(
+            digital_signature=True, content_commitment=False, key_encipherment=False,
+            data_encipherment=False, key_agreement=False, key_cert_sign=True, crl_sign=True,
+            encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
+                       critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    return CertificateAuthority(cert, key)
+
+
+def _san_entry(value: str) -> x509.GeneralName:
+    try:
+        return x509.IPAddress(ipaddress.ip_address(value))
+    except ValueError:
+        return x509.DNSName(value)
+
+
+def make_identity(ca: CertificateAuthority, common_name: str, *, sans: Iterable[str] = (),
+                  days: int = DEFAULT_DAYS, not_before: dt.datetime | None = None,
+                  not_after: dt.datetime | None = None,
+                  ) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    """A leaf certificate for ``common_name`` signed by ``ca``, with a new EC P-256 key.
+
+    SANs: ``localhost``, ``127.0.0.1`` and ``sans`` (IP addresses where they parse as one, DNS
+    names otherwise).  Valid for server and client authentication (each identity may be either
+    end of a TLS link).  ``not_before``/``not_after`` override the validity (tests make expired
+    certificates with them).
+    """
+    key = ec.generate_private_key(ec.SECP256R1())
+    start = not_before if not_before is not None else _now() - dt.timedelta(minutes=1)
+    end = not_after if not_after is not None else start + dt.timedelta(days=days)
+    names: list[str] = []
+    for s in ("localhost", "127.0.0.1", *sans):
+        if s not in names:
+            names.append(s)
+    org = ca.cert.subject.get_attributes_for_oid(NameOID.ORGANIZATION_NAME)
+    organization = str(org[0].value) if org else "sogm-service site"
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(_name(common_name, organization)).issuer_name(ca.cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start).not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.KeyUsage(
+            digital_signature=True, content_commitment=False, key_encipherment=False,
+            data_encipherment=False, key_agreement=False, key_cert_sign=False, crl_sign=False,
+            encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.ExtendedKeyUsage(
+            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+        .add_extension(x509.SubjectAlternativeName([_san_entry(s) for s in names]),
+                       critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
+                       critical=False)
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(
+            ca.key.public_key()), critical=False)
+        .sign(ca.key, hashes.SHA256())
+    )
+    return cert, key
+
+
+def _write_private(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` readable by the owner only (created 0600, never wider)."""
+    tmp = path.with_name(path.name + ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, data)
+    finally:
+        os.close(fd)
+    os.chmod(tmp, 0o600)
+    os.replace(tmp, path)
+
+
+def _write_public(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    _write_private(path, key.private_bytes(serialization.Encoding.PEM,
+                                           serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))
+
+
+def write_cert(path: Path, cert: x509.Certificate) -> None:
+    _write_public(path, cert.public_bytes(serialization.Encoding.PEM))
+
+
+def load_ca(directory: Path) -> CertificateAuthority:
+    cert = x509.load_pem_x509_certificate((directory / "ca.crt").read_bytes())
+    key = serialization.load_pem_private_key((directory / "ca.key").read_bytes(), None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise PkiError("bad_ca_key", f"{directory / 'ca.key'} is not an EC private key")
+    return CertificateAuthority(cert, key)
+
+
+# --------------------------------------------------------------------------- manifest
+
+@dataclass
+class Pki:
+    """What a PKI directory holds: its identities by role and the site's parameters."""
+
+    directory: Path
+    servers: list[str]
+    robots: list[str] = field(default_factory=list)
+    viewers: list[str] = field(default_factory=list)
+    router: str | None = None
+    endpoint: str = DEFAULT_ENDPOINT
+    sans: list[str] = field(default_factory=list)
+    map_name: str = "default"
+    prefix: str = "sogm"
+    days: int = DEFAULT_DAYS
+
+    def names(self) -> list[str]:
+        return [*self.servers, *([self.router] if self.router else []),
+                *self.robots, *self.viewers]
+
+    def role(self, name: str) -> str:
+        if name in self.servers:
+            return "server"
+        if name == self.router:
+            return "router"
+        if name in self.robots:
+            return "robot"
+        if name in self.viewers:
+            return "viewer"
+        raise KeyError(name)
+
+    def cert(self, name: str) -> Path:
+        return self.directory / f"{name}.crt"
+
+    def key(self, name: str) -> Path:
+        return self.directory / f"{name}.key"
+
+    def config(self, name: str) -> Path:
+        """The Zenoh JSON5 config of identity ``name``."""
+        return self.directory / f"{name}.json5"
+
+    @property
+    def ca_cert(self) -> Path:
+        return self.directory / "ca.crt"
+
+    @property
+    def acl_holder(self) -> str:
+        """The identity whose node carries the access control (router, else first server)."""
+        return self.router if self.router else self.servers[0]
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["directory"] = str(self.directory)
+        return d
+
+    @classmethod
+    def load(cls, directory: Path) -> Pki:
+        path = Path(directory).resolve() / MANIFEST
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError as e:
+            raise PkiError("no_pki", f"{path} not found: run `certs init` first") from e
+        except (OSError, ValueError) as e:
+            raise PkiError("bad_manifest", f"{path}: {e}") from e
+        if not isinstance(d, dict):
+            raise PkiError("bad_manifest", f"{path}: not a JSON object")
+        d["directory"] = Path(directory).resolve()
+        try:
+            return cls(**d)
+        except TypeError as e:
+            raise PkiError("bad_manifest", f"{path}: {e}") from e
+
+
+def _check_name(name: str) -> None:
+    if not _NAME_RE.match(name) or name.lower() in _RESERVED:
+        raise PkiError("bad_name", f"{name!r}: an identity name is 1-63 letters, digits, "
+                                   "'_', '.', '-' (not starting with a punctuation mark), and "
+                                   "not 'ca' or 'pki'")
+
+
+_SAN_RE = re.compile(r"^[A-Za-z0-9*][A-Za-z0-9.\-:*]{0,252}$")
+
+
+def _check_san(san: str) -> None:
+    if not _SAN_RE.match(san):
+        raise PkiError("bad_san", f"{san!r}: a SAN is a DNS name or an IP address")
+
+
+def _check_endpoint(endpoint: str) -> None:
+    proto, sep, rest = endpoint.partition("/")
+    if proto != "tls" or not sep or ":" not in rest:
+        raise PkiError("bad_endpoint", f"{endpoint!r}: a TLS endpoint is tls/<host>:<port>")
+
+
+def _check_map(map_name: str, prefix: str) -> None:
+    if not re.match(r"^[A-Za-z0-9_\-]+$", map_name):
+        raise PkiError("bad_map", f"{map_name!r}: a map name is letters, digits, '_', '-'")
+    if not re.match(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$", prefix.strip("/")):
+        raise PkiError("bad_prefix", f"{prefix!r}: a prefix is chunks of letters, digits, "
+                                     "'_', '-' separated by '/'")
+
+
+# --------------------------------------------------------------------------- access control
+
+def access_control(pki: Pki) -> dict[str, Any]:
+    """The ``access_control`` section for the node everyone connects to (see module doc)."""
+    base = f"{pki.prefix.strip('/')}/{pki.map_name}"
+    reads = [f"{base}/{q}" for q in READ_QUERIES]
+    events = f"{base}/events/**"
+    servers_token = f"{base}/@server/*"
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def rule(rid: str, flow: str, messages: list[str], keys: list[str]) -> str:
+        rules.append({"id": rid, "permission": "allow", "flows": [flow],
+                      "messages": messages, "key_exprs": keys})
+        return rid
+
+    trusted = [*pki.servers, *([pki.router] if pki.router else [])]
+    every = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+             "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"]
+    # ``**`` does not match a verbatim chunk such as ``@server``: name the tokens' keys too.
+    rule("trusted-in", "ingress", every, ["**", servers_token])
+    rule("trusted-out", "egress", every, ["**", servers_token])
+    subjects.append({"id": "servers", "cert_common_names": trusted})
+    policies.append({"id": "servers", "rules": ["trusted-in", "trusted-out"],
+                     "subjects": ["servers"]})
+
+    # What robots and viewers share: read queries and their replies, events, server discovery.
+    rule("read-query", "ingress", ["query"], reads)
+    rule("read-reply", "egress", ["reply"], reads)
+    rule("events-sub", "ingress", ["declare_subscriber"], [events])
+    rule("events-put", "egress", ["put"], [events])
+    rule("discover-in", "ingress", ["liveliness_query", "declare_liveliness_subscriber"],
+         [servers_token])
+    rule("discover-out", "egress", ["liveliness_token"], [servers_token])
+    # Let clients know the servers' queryables (never tiles/**) ...
+    rule("read-decl", "egress", ["declare_queryable"], reads)
+    shared = ["read-query", "read-reply", "read-decl", "events-sub", "events-put",
+              "discover-in", "discover-out"]
+    # ... and, for robots, the servers' subscriptions: a client's declared publisher sends
+    # only when it knows a matching subscriber (without this, MapClient.publish_ism's puts
+    # are dropped at the robot). It tells the robot that someone listens, nothing more.
+    rule("ingest-decl", "egress", ["declare_subscriber"], ["ism/**", "pose/**"])
+
+    for robot in pki.robots:
+        own = [rule(f"robot-{robot}-put", "ingress", ["put"], [f"ism/{robot}/**",
+                                                               f"pose/{robot}"]),
+               rule(f"robot-{robot}-rej-sub", "ingress", ["declare_subscriber"],
+                    [f"{base}/rejections/{robot}"]),
+               rule(f"robot-{robot}-rej-put", "egress", ["put"],
+                    [f"{base}/rejections/{robot}"])]
+        subjects.append({"id": f"robot-{robot}", "cert_common_names": [robot]})
+        policies.append({"id": f"robot-{robot}", "rules": [*shared, "ingest-decl", *own],
+                         "subjects": [f"robot-{robot}"]})
+
+    if pki.viewers:
+        rule("viewer-pose-sub", "ingress", ["declare_subscriber"], ["pose/**"])
+        rule("viewer-pose-put", "egress", ["put"], ["pose/**"])
+        subjects.append({"id": "viewers", "cert_common_names": list(pki.viewers)})
+        policies.append({"id": "viewers",
+                         "rules": [*shared, "viewer-pose-sub", "viewer-pose-put"],
+                         "subjects": ["viewers"]})
+
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}
+
+
+# --------------------------------------------------------------------------- zenoh configs
+
+def zenoh_config(pki: Pki, name: str) -> dict[str, Any]:
+    """The Zenoh configuration (as a dict) of identity ``name``."""
+    role = pki.role(name)
+    tls = {
+        "root_ca_certificate": str(pki.ca_cert),
+        "listen_certificate": str(pki.cert(name)),
+        "listen_private_key": str(pki.key(name)),
+        "connect_certificate": str(pki.cert(name)),
+        "connect_private_key": str(pki.key(name)),
+        "enable_mtls": True,
+        "verify_name_on_connect": True,
+        "close_link_on_expiration": True,
+    }
+    listens = name == pki.acl_holder
+    if role == "router":
+        mode = "router"
+    elif role == "server" and not pki.router:
+        mode = "peer"
+    else:
+        mode = "client"
+    config: dict[str, Any] = {
+        "mode": mode,
+        "listen": {"endpoints": [pki.endpoint] if listens else []},
+        "connect": {"endpoints": [] if listens else [pki.endpoint]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"link": {"protocols": ["tls"], "tls": tls}},
+    }
+    if listens:
+        config["access_control"] = access_control(pki)
+    return config
+
+
+def _config_text(pki: Pki, name: str) -> str:
+    role = pki.role(name)
+    holder = pki.acl_holder
+    lines = [
+        f"// Zenoh config of {role} {name!r} (written by `sogm-service certs`; regenerate rather",
+        "// than edit: `certs add` rewrites the access-control rules).",
+        f"// Mutual TLS with the site CA {pki.ca_cert}.",
+    ]
+    if name == holder:
+        lines.append(f"// Listens on {pki.endpoint} and enforces the site's access control.")
+    else:
+        lines.append(f"// Connects to {holder!r} at {pki.endpoint}.")
+    return "\n".join(lines) + "\n" + json.dumps(zenoh_config(pki, name), indent=2) + "\n"
+
+
+def write_configs(pki: Pki) -> None:
+    """(Re)write every identity's JSON5 config and the manifest."""
+    for name in pki.names():
+        _write_public(pki.config(name), _config_text(pki, name).encode())
+    _write_public(pki.directory / MANIFEST, (json.dumps(pki.to_json(), indent=2) + "\n").encode())
+
+
+def _issue(pki: Pki, ca: CertificateAuthority, name: str) -> None:
+    cert, key = make_identity(ca, name, sans=pki.sans, days=pki.days)
+    write_key(pki.key(name), key)
+    write_cert(pki.cert(name), cert)
+
+
+# --------------------------------------------------------------------------- public API
+
+def init_pki(directory: Path | str, *, server_names: Sequence[str],
+             robot_names: Sequence[str] = (), viewer_names: Sequence[str] = (),
+             router_name: str | None = None, endpoint: str = DEFAULT_ENDPOINT,
+             sans: Sequence[str] = (), map_name: str = "default", prefix: str = "sogm",
+             days: int = DEFAULT_DAYS, force: bool = False) -> Pki:
+    """Create a CA, one certificate/key/Zenoh config per identity and the manifest.
+
+    Refuses (``PkiError``) an existing PKI unless ``force``, a bad or duplicate name, no
+    server, or a non-TLS endpoint.
+    """
+    directory = Path(directory).resolve()
+    if not server_names:
+        raise PkiError("no_server", "at least one server identity is needed")
+    names = [*server_names, *([router_name] if router_name else []), *robot_names,
+             *viewer_names]
+    for n in names:
+        _check_name(n)
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise PkiError("duplicate_name", f"identities named more than once: {dupes}")
+    _check_endpoint(endpoint)
+    for san in sans:
+        _check_san(san)
+    _check_map(map_name, prefix)
+    if days <= 0:
+        raise PkiError("bad_days", f"days must be positive, not {days}")
+    if (directory / "ca.key").exists() and not force:
+        raise PkiError("exists", f"{directory} already holds a CA (use `certs add`, or --force "
+                                 "to start over)")
+    directory.mkdir(parents=True, exist_ok=True)
+    pki = Pki(directory, list(server_names), list(robot_names), list(viewer_names), router_name,
+              endpoint, list(sans), map_name, prefix, days)
+    ca = make_ca()
+    write_key(directory / "ca.key", ca.key)
+    write_cert(pki.ca_cert, ca.cert)
+    for n in names:
+        _issue(pki, ca, n)
+    write_configs(pki)
+    return pki
+
+
+def add_identity(directory: Path | str, name: str, role: str = "robot") -> Pki:
+    """Issue a new robot, viewer or server with the existing CA; rewrite every config so the
+    access control (on the router, or the first server) knows it.  Nodes that carry the
+    access control must be restarted to load it."""
+    pki = Pki.load(Path(directory))
+    _check_name(name)
+    if name in pki.names():
+        raise PkiError("duplicate_name", f"{name!r} already exists in {pki.directory}")
+    if role == "robot":
+        pki.robots.append(name)
+    elif role == "viewer":
+        pki.viewers.append(name)
+    elif role == "server":
+        pki.servers.append(name)
+    else:
+        raise PkiError("bad_role", f"{role!r}: one of robot, viewer, server")
+    _issue(pki, load_ca(pki.directory), name)
+    write_configs(pki)
+    return pki
+
+
+def renew_identity(directory: Path | str, name: str, days: int | None = None) -> Pki:
+    """A new key and certificate for ``name`` (rotation); its config stays the same."""
+    pki = Pki.load(Path(directory))
+    if name not in pki.names():
+        raise PkiError("unknown_name", f"{name!r} is not an identity of {pki.directory}")
+    if days is not None:
+        if days <= 0:
+            raise PkiError("bad_days", f"days must be positive, not {days}")
+        pki.days = days
+    _issue(pki, load_ca(pki.directory), name)
+    write_configs(pki)
+    return pki
+
+
+def remove_identity(directory: Path | str, name: str) -> Pki:
+    """Drop ``name`` from the site: delete its key, certificate and config and rewrite the
+    access control without it (restart the node that carries it).  Its certificate still
+    passes mutual TLS until it expires, but its common name matches no rule: default deny.
+    Never reissue a removed name while its old certificate is valid (the rules are by name)."""
+    pki = Pki.load(Path(directory))
+    if name not in pki.names():
+        raise PkiError("unknown_name", f"{name!r} is not an identity of {pki.directory}")
+    if name == pki.router or pki.servers == [name]:
+        raise PkiError("needed", f"{name!r} is the router or the only server")
+    for lst in (pki.servers, pki.robots, pki.viewers):
+        if name in lst:
+            lst.remove(name)
+    for path in (pki.key(name), pki.cert(name), pki.config(name)):
+        path.unlink(missing_ok=True)
+    write_configs(pki)
+    return pki
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="sogm-service certs",
+        description="A development PKI and Zenoh mutual-TLS/access-control configs for a site.")
+    sub = p.add_subparsers(dest="action", required=True)
+    init = sub.add_parser("init", help="create a CA, identities and their Zenoh configs")
+    init.add_argument("dir", type=Path, help="directory to write (created)")
+    init.add_argument("--server", action="append", required=True, metavar="NAME",
+                      help="a map server identity (repeatable; the first listens when there "
+                           "is no router)")
+    init.add_argument("--robot", action="append", default=[], metavar="NAME",
+                      help="a robot identity (repeatable)")
+    init.add_argument("--viewer", action="append", default=[], metavar="NAME",
+                      help="a read-only viewer identity (repeatable)")
+    init.add_argument("--router", default=None, metavar="NAME",
+                      help="a router in the middle: it listens and enforces access control")
+    init.add_argument("--endpoint", default=DEFAULT_ENDPOINT,
+                      help="the listening TLS endpoint (default %(default)s)")
+    init.add_argument("--san", action="append", default=[], metavar="HOST",
+                      help="extra subject alternative name (DNS name or IP; repeatable)")
+    init.add_argument("--map", default="default", help="map name (default %(default)s)")
+    init.add_argument("--prefix", default="sogm", help="key prefix (default %(default)s)")
+    init.add_argument("--days", type=int, default=DEFAULT_DAYS,
+                      help="validity of the identities' certificates (default %(default)s)")
+    init.add_argument("--force", action="store_true", help="overwrite an existing PKI")
+    add = sub.add_parser("add", help="issue one more identity with the existing CA")
+    add.add_argument("dir", type=Path)
+    who = add.add_mutually_exclusive_group(required=True)
+    who.add_argument("--robot", metavar="NAME")
+    who.add_argument("--viewer", metavar="NAME")
+    who.add_argument("--server", metavar="NAME")
+    renew = sub.add_parser("renew", help="a new key and certificate for an identity")
+    renew.add_argument("dir", type=Path)
+    renew.add_argument("name")
+    renew.add_argument("--days", type=int, default=None)
+    remove = sub.add_parser("remove", help="drop an identity from the site's access control")
+    remove.add_argument("dir", type=Path)
+    remove.add_argument("name")
+    show = sub.add_parser("show", help="list the identities and their certificates' validity")
+    show.add_argument("dir", type=Path)
+    return p
+
+
+def _summary(pki: Pki) -> str:
+    lines = [f"PKI in {pki.directory} (map {pki.map_name!r}, prefix {pki.prefix!r}, "
+             f"endpoint {pki.endpoint})", f"  CA: {pki.ca_cert}"]
+    for name in pki.names():
+        try:
+            cert = x509.load_pem_x509_certificate(pki.cert(name).read_bytes())
+            until = cert.not_valid_after_utc.strftime("%Y-%m-%d %H:%M UTC")
+        except (OSError, ValueError):
+            until = "missing or unreadable"
+        marker = "  (listens, access control)" if name == pki.acl_holder else ""
+        lines.append(f"  {pki.role(name):6s} {name}: --zenoh-config {pki.config(name)}"
+                     f"  valid until {until}{marker}")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``sogm-service certs ...``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        if args.action == "init":
+            pki = init_pki(args.dir, server_names=args.server, robot_names=args.robot,
+                           viewer_names=args.viewer, router_name=args.router,
+                           endpoint=args.endpoint, sans=args.san, map_name=args.map,
+                           prefix=args.prefix, days=args.days, force=args.force)
+        elif args.action == "add":
+            role, name = next((r, getattr(args, r)) for r in ("robot", "viewer", "server")
+                              if getattr(args, r))
+            pki = add_identity(args.dir, name, role)
+            print(f"issued {role} {name!r}; restart {pki.acl_holder!r} to load the new "
+                  "access-control rules", file=sys.stderr)
+        elif args.action == "renew":
+            pki = renew_identity(args.dir, args.name, args.days)
+        elif args.action == "remove":
+            pki = remove_identity(args.dir, args.name)
+            print(f"removed {args.name!r}; restart {pki.acl_holder!r} to load the new "
+                  "access-control rules", file=sys.stderr)
+        else:
+            pki = Pki.load(args.dir)
+    except PkiError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(_summary(pki))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
