@@ -717,8 +717,6 @@ def test_real_server_impostor_answers_no_query(real_site: RealSite) -> None:
         q.undeclare()
 
 
-@pytest.mark.xfail(strict=True, reason="serve takes the robot's name from the pose's payload "
-                   "(msg.robot), not from its key: the access control holds the key only")
 def test_real_server_a_robot_cannot_move_another_robot(real_site: RealSite) -> None:
     forged = PoseMessage(robot="robotB", frame="map", stamp=1.0, x=50.0, y=50.0, yaw=0.0)
     with client_as(real_site, "robotA") as robot:

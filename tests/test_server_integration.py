@@ -17,8 +17,14 @@ from sogm_service.service import pipeline as ingest
 from sogm_service.service import queries
 from sogm_service.service.client import MapClient, QueryTimeoutError, ServiceError
 from sogm_service.wire import codec
-from sogm_service.wire.messages import FusedRequest, IsmMessage, PoseModel, SubmapRequest
-from tests.conftest import ServerProcess, start_server, wait_processed
+from sogm_service.wire.messages import (
+    FusedRequest,
+    IsmMessage,
+    PoseMessage,
+    PoseModel,
+    SubmapRequest,
+)
+from tests.conftest import ServerProcess, start_server, wait_processed, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -275,3 +281,20 @@ def test_payload_over_the_byte_limit_is_refused_before_queueing(tmp_path: Path) 
         assert srv.terminate() == 0
     assert counters["isms_fused"] == 1
     assert stats.rejected == {"too_large": 1}
+
+
+def test_a_message_naming_another_robot_than_its_key_is_refused(server: ServerProcess) -> None:
+    """Access control grants keys per robot, so the robot named in a payload must be the key's."""
+    grid = np.full((20, 20), 230, np.uint8)
+    with server.client() as client:
+        client.publish_ism("ism/robotA/laser/obstacle", grid, resolution=0.05, robot="robotB")
+        client.publish_raw("pose/robotA", codec.encode(PoseMessage(robot="robotB", x=30.0,
+                                                                   y=30.0)))
+        client.publish_ism("ism/robotA/laser/obstacle", grid, resolution=0.05, robot="robotA")
+        client.publish_pose("robotA", 1.0, 1.0)
+        counters = wait_processed(client, 2)
+        assert counters.get("isms_fused") == 1
+        assert client.stats().rejected == {"robot_mismatch": 1}
+        wait_until(lambda: "robotA" in {e.robot for e in client.robots().robots}, 10.0)
+        assert {e.robot for e in client.robots().robots} == {"robotA"}
+        assert client.stats().counters.get("poses_rejected_robot_mismatch") == 1

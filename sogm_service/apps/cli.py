@@ -48,6 +48,12 @@ def _replay(argv: list[str]) -> int:
     return replay.main(argv)
 
 
+def _certs(argv: list[str]) -> int:
+    from sogm_service.apps import certs
+
+    return certs.main(argv)
+
+
 def _bench(argv: list[str]) -> int:
     from sogm_service import bench
 
@@ -61,6 +67,7 @@ _DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
     "demo": (_demo, "embedded demo: a server and a simulated fleet on 127.0.0.1"),
     "replay": (_replay, "replay a CARMEN laser log into a map"),
     "bench": (_bench, "the performance suite"),
+    "certs": (_certs, "a dev PKI and mutual-TLS / access-control Zenoh configs"),
 }
 
 
@@ -81,6 +88,16 @@ def _connection_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", default="default", help="map name (default %(default)s)")
     p.add_argument("--prefix", default="sogm", help="key prefix (default %(default)s)")
     p.add_argument("--timeout", type=float, default=5.0, help="query timeout (s)")
+    _zenoh_config_arg(p)
+
+
+def _zenoh_config_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="Zenoh JSON5 config, honoured as is (mode, TLS, endpoints), e.g. one "
+                        "written by 'sogm-service certs'; replaces --connect")
+
+
+DEFAULT_ROUTER_LISTEN = "tcp/127.0.0.1:7447"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -96,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--connect", action="append", default=None,
                        help="Zenoh connect endpoint (repeatable; overrides the config)")
     serve.add_argument("--storage", type=Path, default=None, help="tile store directory")
+    _zenoh_config_arg(serve)
 
     query = sub.add_parser("query", help="query a running server")
     qsub = query.add_subparsers(dest="what", required=True)
@@ -137,8 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     router = sub.add_parser("router", help="run a Zenoh router (Python) for robots and servers")
     router.add_argument("--listen", action="append", default=None,
-                        help="endpoint (repeatable; default tcp/0.0.0.0:7447)")
-    router.add_argument("--config", type=Path, default=None, help="Zenoh JSON5 config")
+                        help=f"endpoint (repeatable; default {DEFAULT_ROUTER_LISTEN}: loopback "
+                             "only, name the site address to open it)")
+    router.add_argument("--config", "--zenoh-config", dest="config", type=Path, default=None,
+                        metavar="FILE", help="Zenoh JSON5 config, honoured as is (its mode "
+                                             "and listeners too)")
 
     for name, (_, text) in _DELEGATED.items():
         d = sub.add_parser(name, help=text, add_help=False)
@@ -203,6 +224,8 @@ def _serve(args: argparse.Namespace) -> int:
         updates["listen"] = args.listen
     if args.connect:
         updates["connect"] = args.connect
+    if args.zenoh_config:
+        updates["config_file"] = args.zenoh_config
     if updates:
         config = config.model_copy(update={"zenoh": config.zenoh.model_copy(update=updates)})
     if args.storage:
@@ -230,7 +253,7 @@ def _client(args: argparse.Namespace) -> Any:
     from sogm_service.service.client import MapClient
 
     return MapClient.connect(args.connect, map_name=args.map, prefix=args.prefix,
-                             timeout=args.timeout)
+                             timeout=args.timeout, zenoh_config=args.zenoh_config)
 
 
 def _query(args: argparse.Namespace) -> int:
@@ -375,12 +398,15 @@ def _router(args: argparse.Namespace) -> int:
     from sogm_service.service.config import ZenohSettings
     from sogm_service.service.session import open_session
 
-    settings = ZenohSettings(mode="router", listen=args.listen or ["tcp/0.0.0.0:7447"],
-                             config_file=args.config)
+    if args.config is not None:  # the file as it is; --listen only when given
+        extra = {"listen": args.listen} if args.listen else {}
+        settings = ZenohSettings(config_file=args.config, **extra)
+    else:
+        settings = ZenohSettings(mode="router", listen=args.listen or [DEFAULT_ROUTER_LISTEN])
     stop = stop_on_signal()
     session = open_session(settings)
-    print(f"sogm-service router {session.info.zid()} listening on {settings.listen}",
-          flush=True)
+    where = settings.listen or f"the listeners of {args.config}"
+    print(f"sogm-service router {session.info.zid()} listening on {where}", flush=True)
     try:
         wait_for(stop)
     finally:

@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fast", action="store_true",
                    help="do not pace the fleet in real time (as fast as the server fuses)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--secure", action="store_true",
+                   help="run everything through a fresh dev PKI (DIR/pki): mutual TLS and the "
+                        "access-control rules of 'sogm-service certs', one identity per robot")
     return p
 
 
@@ -69,15 +72,21 @@ def main(argv: list[str] | None = None) -> int:
     world = "tabletop" if args.tabletop else args.world
     result = run_demo(world=world, robots=args.robots, duration_s=args.duration,
                       rate_hz=args.rate, seed=args.seed, out=args.out,
-                      realtime=not args.fast, speed=args.speed, progress=not args.quiet)
+                      realtime=not args.fast, speed=args.speed, progress=not args.quiet,
+                      secure=args.secure)
     _print_summary(result, args.out)
     return 0
 
 
 def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 60.0,
              rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
-             realtime: bool = True, speed: float = 3.0, progress: bool = True) -> DemoResult:
-    """Run the whole demo; returns its summary (and writes every file into ``out``)."""
+             realtime: bool = True, speed: float = 3.0, progress: bool = True,
+             secure: bool = False) -> DemoResult:
+    """Run the whole demo; returns its summary (and writes every file into ``out``).
+
+    ``secure``: a fresh dev PKI in ``out/pki`` (:func:`sogm_service.apps.certs.init_pki`); the
+    server, each robot and the demo's own client (a viewer) open their sessions from their
+    identity's config: mutual TLS and access control by certificate name, end to end."""
     from sogm_service.service.client import MapClient
     from sogm_service.service.server import MapServer
     from sogm_service.service.session import free_tcp_endpoint
@@ -87,12 +96,18 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     out.mkdir(parents=True, exist_ok=True)
     w = tabletop_world(seed) if world == "tabletop" else warehouse_world(seed)
     endpoint = free_tcp_endpoint()
-    server = MapServer(_config(w.geometry.resolution, endpoint, out)).start()
+    configs: dict[str, Path] = {}
+    zenoh: dict[str, Any] = {"listen": [endpoint]}
+    if secure:
+        configs = _dev_pki(out / "pki", endpoint, robots)
+        zenoh = {"config_file": str(configs["server"])}
+    server = MapServer(_config(w.geometry.resolution, zenoh, out)).start()
     try:
-        with MapClient.connect(endpoint, map_name="demo", timeout=10.0) as client:
+        with MapClient.connect(endpoint, map_name="demo", timeout=10.0,
+                               zenoh_config=configs.get("viewer")) as client:
             watcher = _FleetWatcher(client, out / "tile_events.log")
             fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
-                           server, progress)
+                           server, progress, configs)
             server.wait_idle(timeout=60.0)
             result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out)
             watcher.close()
@@ -103,14 +118,26 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     return result
 
 
-def _config(resolution: float, endpoint: str, out: Path) -> Any:
+def _dev_pki(directory: Path, endpoint: str, robots: int) -> dict[str, Path]:
+    """A fresh PKI for the demo: the server listens on ``endpoint`` over TLS; the configs of the
+    server, the viewer and each robot by name."""
+    from sogm_service.apps.certs import init_pki
+
+    names = [f"robot{i + 1}" for i in range(robots)]  # the fleet's names (sim/fleet.py)
+    pki = init_pki(directory, server_names=["server"], robot_names=names,
+                   viewer_names=["viewer"], endpoint=endpoint.replace("tcp/", "tls/", 1),
+                   map_name="demo", force=True)
+    return {name: pki.config(name) for name in ["server", "viewer", *names]}
+
+
+def _config(resolution: float, zenoh: dict[str, Any], out: Path) -> Any:
     from sogm_service.service.config import ServiceConfig
 
     return ServiceConfig.model_validate({
         "map": {"name": "demo", "resolution": resolution},
         "storage": {"directory": str(out / "tiles"), "checkpoint_interval_s": 2.0},
         "tiles": {"hysteresis_m": min(1.0, 64 * resolution)},
-        "zenoh": {"listen": [endpoint]},
+        "zenoh": zenoh,
         "log_level": "warning",
     })
 
@@ -147,7 +174,8 @@ class _FleetWatcher:
 
 
 def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: float,
-           seed: int, realtime: bool, speed: float, server: Any, progress: bool) -> Any:
+           seed: int, realtime: bool, speed: float, server: Any, progress: bool,
+           configs: dict[str, Path]) -> Any:
     """Run the fleet in a thread while a progress bar shows the server's view."""
     from sogm_service.sim.fleet import run_fleet
 
@@ -155,7 +183,8 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
 
     def fleet() -> None:
         box["stats"] = run_fleet(world, endpoint, robots=robots, duration_s=duration_s,
-                                 rate_hz=rate_hz, seed=seed, realtime=realtime, speed=speed)
+                                 rate_hz=rate_hz, seed=seed, realtime=realtime, speed=speed,
+                                 zenoh_configs=configs or None)
 
     thread = threading.Thread(target=fleet, name="demo-fleet")
     t0 = time.monotonic()

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -88,9 +89,15 @@ class MapClient:
     @classmethod
     def connect(cls, endpoint: str | None = None, map_name: str = "default",
                 prefix: str = "sogm", timeout: float = DEFAULT_TIMEOUT_S,
-                zenoh_settings: ZenohSettings | None = None) -> MapClient:
-        """Open an own session (closed by :meth:`close`): to ``endpoint`` as a client, or with
-        the given settings."""
+                zenoh_settings: ZenohSettings | None = None,
+                zenoh_config: str | Path | zenoh.Config | None = None) -> MapClient:
+        """Open an own session (closed by :meth:`close`): to ``endpoint`` as a client, with the
+        given settings, or from a Zenoh config (a JSON5 file or a ``zenoh.Config``, honoured as
+        it is: mode, TLS, endpoints; e.g. one written by ``sogm-service certs``)."""
+        if zenoh_config is not None:
+            config = zenoh_config if isinstance(zenoh_config, zenoh.Config) \
+                else zenoh.Config.from_file(str(zenoh_config))
+            return cls(zenoh.open(config), map_name, prefix, timeout, owns_session=True)
         settings = zenoh_settings or loopback_settings(connect=endpoint, mode="client")
         return cls(open_session(settings), map_name, prefix, timeout, owns_session=True)
 

@@ -37,7 +37,7 @@ from sogm_service.service.matcher import Matcher
 from sogm_service.service.stats import Rejections, Stats
 from sogm_service.wire import codec
 from sogm_service.wire.errors import IsmRejectedError, SogmError
-from sogm_service.wire.keys import key_remainder
+from sogm_service.wire.keys import key_remainder, robot_of_ism_key
 from sogm_service.wire.limits import LAYER_NAME_PATTERN
 from sogm_service.wire.messages import IsmMessage
 
@@ -74,6 +74,14 @@ def layer_name(msg: IsmMessage, key: str, key_expr: str) -> str:
         raise IsmRejectedError("bad_layer", f"layer name {name!r} is empty, too long or has "
                                             "characters outside [A-Za-z0-9_-./]", "layer")
     return name
+
+
+def check_robot(named: str | None, by_key: str) -> None:
+    """A message may name only the robot of its key: access control grants keys per robot
+    (``ism/<robot>/**``, ``pose/<robot>``), so the name in a payload is trusted no further."""
+    if named is not None and named != by_key:
+        raise IsmRejectedError("robot_mismatch", f"the message names robot {named[:64]!r} on "
+                                                 f"a key of robot {by_key[:64]!r}", "robot")
 
 
 def ism_geometry(msg: IsmMessage) -> GridGeometry:
@@ -147,6 +155,7 @@ class IngestPipeline:
 
     def prepare(self, item: IsmItem, msg: IsmMessage) -> PreparedIsm:
         source = self.config.ism[item.source]
+        check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
         layer = layer_name(msg, item.key, source.key_expr)
         inc = increments(msg, self.shared.frame, self.config.map.eps0)
         return PreparedIsm(msg, item.key, item.source, layer, inc, ism_geometry(msg))

@@ -33,7 +33,7 @@ from sogm_service.service.fleet import FleetTracker
 from sogm_service.service.ingest import IngestQueue, IngestWorker
 from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.matcher import Matcher
-from sogm_service.service.pipeline import IngestPipeline, IsmItem
+from sogm_service.service.pipeline import IngestPipeline, IsmItem, check_robot
 from sogm_service.service.replication import Replication
 from sogm_service.service.session import open_session
 from sogm_service.service.stats import Stats
@@ -173,8 +173,13 @@ class MapServer:
         except DecodeError as exc:
             self.stats.count(f"poses_rejected_{exc.code}")
             return
+        robot = last_chunk(str(sample.key_expr))
+        try:
+            check_robot(msg.robot, robot)
+        except SogmError as exc:
+            self.stats.count(f"poses_rejected_{exc.code}")
+            return
         self.stats.count("poses_received")
-        robot = msg.robot or last_chunk(str(sample.key_expr))
         self.fleet.robot_pose(robot, msg.x, msg.y, msg.stamp)
 
     def _publish_event(self, event: TileEvent) -> None:

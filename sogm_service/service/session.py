@@ -14,13 +14,20 @@ from sogm_service.service.config import ZenohSettings
 
 
 def make_config(settings: ZenohSettings) -> zenoh.Config:
-    """A ``zenoh.Config``: from the JSON5 file when given, then our fields on top."""
+    """A ``zenoh.Config``.  A JSON5 file (``config_file``) is honoured as it is, mode included:
+    only the fields set explicitly beside it (listen, connect, mode, scouting) go on top.
+    Without a file the settings' defaults apply (peer, multicast scouting off)."""
     if settings.config_file is not None:
         config = zenoh.Config.from_file(str(settings.config_file))
+        explicit = settings.model_fields_set
     else:
         config = zenoh.Config()
-    config.insert_json5("mode", json.dumps(settings.mode))
-    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+        explicit = {"mode", "multicast_scouting"}
+    if "mode" in explicit:
+        config.insert_json5("mode", json.dumps(settings.mode))
+    if "multicast_scouting" in explicit:
+        config.insert_json5("scouting/multicast/enabled",
+                            json.dumps(settings.multicast_scouting))
     if settings.listen:
         config.insert_json5("listen/endpoints", json.dumps(settings.listen))
     if settings.connect:
@@ -43,12 +50,13 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
 
 def wait_listening(endpoint: str, timeout: float, exited: Callable[[], bool],
                    log: Callable[[], str], poll_s: float = 0.02) -> None:
-    """Wait until something accepts TCP connections on ``endpoint`` (``tcp/<host>:<port>``).
+    """Wait until something accepts TCP connections on ``endpoint`` (``tcp/<host>:<port>``, or
+    ``tls/...``: TLS listens on TCP too).
 
     ``exited`` tells whether the process expected to listen is gone (then this raises at once);
     ``log`` gives its output for the error.  Raises ``RuntimeError`` after ``timeout`` seconds.
     """
-    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    host, port = endpoint.split("/", 1)[-1].rsplit(":", 1)  # tcp/ or tls/: the TCP port listens
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if exited():

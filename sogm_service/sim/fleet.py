@@ -26,8 +26,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -77,9 +78,9 @@ class RobotLink:
 
     def __init__(self, name: str, endpoint: str, *, ism_prefix: str = "ism",
                  pose_prefix: str = "pose", encoding: str = "occupancy_i8",
-                 frame: str = "map") -> None:
+                 frame: str = "map", zenoh_config: Path | None = None) -> None:
         self.name = name
-        self.client = MapClient.connect(endpoint)
+        self.client = MapClient.connect(endpoint, zenoh_config=zenoh_config)
         self.ism_prefix = ism_prefix
         self.pose_prefix = pose_prefix
         self.encoding = encoding
@@ -113,14 +114,17 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               rate_hz: float = 4.0, seed: int = 0, odom_noise: float = 0.0,
               sensors: Sequence[Sensor] | None = None, realtime: bool = True,
               encoding: str = "occupancy_i8", ism_prefix: str = "ism", pose_prefix: str = "pose",
-              stop: threading.Event | None = None, speed: float = 1.0) -> FleetStats:
+              stop: threading.Event | None = None, speed: float = 1.0,
+              zenoh_configs: Mapping[str, Path] | None = None) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
 
     ``realtime`` paces steps at ``rate_hz`` on the wall clock (a live demo); otherwise steps go
     out as fast as they are simulated (tests, bulk loading).  Stamps are wall-clock seconds of
-    the run's start plus simulated time.  ``stop`` ends the run early.  Blocks until done.
+    the run's start plus simulated time.  ``stop`` ends the run early.  ``zenoh_configs`` gives
+    robots their own Zenoh config (``robot1`` -> its JSON5, e.g. from ``sogm-service certs``)
+    instead of a plain connection to ``endpoint``.  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -130,7 +134,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     try:
         for name in names:
             links[name] = RobotLink(name, endpoint, ism_prefix=ism_prefix,
-                                    pose_prefix=pose_prefix, encoding=encoding)
+                                    pose_prefix=pose_prefix, encoding=encoding,
+                                    zenoh_config=(zenoh_configs or {}).get(name))
         for step in simulate(world, robots, duration_s, rate_hz, seed, odom_noise=odom_noise,
                              sensors=sensors):
             if stop is not None and stop.is_set():

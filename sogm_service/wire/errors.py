@@ -28,6 +28,8 @@ ISM_CODES: Final[dict[str, str]] = {
     "wrong_frame": "the ISM's frame is not the map frame",
     "bad_layer": "the layer name is empty, too long or has characters outside [A-Za-z0-9_-./]",
     "too_large": "the ISM's footprint covers more tiles than the limit",
+    "robot_mismatch": "the message names another robot than its key (ism/<robot>/..., "
+                      "pose/<robot>)",
     "internal_error": "the server failed on this ISM (a bug: the map is unchanged)",
 }
 """Why a well-formed ISM cannot go into this map (:class:`IsmRejectedError`); scan matching adds

@@ -89,6 +89,12 @@ def key_remainder(key: str, key_expr: str) -> str:
     return key[len(prefix):].strip("/") if prefix and key.startswith(prefix) else key
 
 
+def robot_of_ism_key(key: str, key_expr: str) -> str:
+    """The robot an ISM key names: the first chunk after the expression's literal prefix
+    (``ism/robot1/laser/obstacle`` -> ``robot1``), the chunk access control grants per robot."""
+    return key_remainder(key, key_expr).split("/", 1)[0]
+
+
 def ism_key(prefix: str, robot: str, sensor: str, layer: str) -> str:
     """The key a robot publishes one sensor's ISMs of one class on."""
     return f"{prefix}/{robot}/{sensor}/{layer}"
