@@ -60,7 +60,10 @@ def test_two_robots_fuse_into_their_layers_and_match_the_core(server: ServerProc
         local = TiledMap("default", "map", TileLattice(0.05, 256))
         for key, msg in isms:
             ingest.fuse_ism(local, msg, ingest.layer_name(msg, key, "ism/**"))
-        window = dict(x=3.0, y=1.0, yaw=0.3, width=6.0, height=5.0, resolution=0.04)
+        # Two sessions publish, so the layers' order at the server is their arrival order: ask
+        # for both by name (the order of the reply follows the request).
+        window = dict(x=3.0, y=1.0, yaw=0.3, width=6.0, height=5.0, resolution=0.04,
+                      layers=["robot1/laser/obstacle", "robot2/camera/floor"])
         got = viewer.submap(**window, encoding="logodds_i16")
         want = queries.submap(local, SubmapRequest(**window, encoding="logodds_i16"),
                               10**8, 0.0)
