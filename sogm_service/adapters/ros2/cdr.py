@@ -154,7 +154,8 @@ def _serialize(msg: Any, ros_type: str) -> bytes:
 
 
 # -- nav_msgs/msg/OccupancyGrid ------------------------------------------------------------
-def _grid_fields(m: Any, max_cells: int) -> OccupancyGridFields:
+def grid_fields(m: Any, max_cells: int = DEFAULT_MAX_CELLS) -> OccupancyGridFields:
+    """A rosbags OccupancyGrid object (decoded here or by a bag reader) -> the flat fields."""
     info = m.info
     width, height = int(info.width), int(info.height)
     res = float(info.resolution)
@@ -177,7 +178,7 @@ def _grid_fields(m: Any, max_cells: int) -> OccupancyGridFields:
 def decode_occupancy_grid(payload: bytes | bytearray | memoryview, *,
                           max_bytes: int = DEFAULT_MAX_PAYLOAD,
                           max_cells: int = DEFAULT_MAX_CELLS) -> OccupancyGridFields:
-    return _grid_fields(_deserialize(payload, OCCUPANCY_GRID, max_bytes), max_cells)
+    return grid_fields(_deserialize(payload, OCCUPANCY_GRID, max_bytes), max_cells)
 
 
 def _grid_msg(g: OccupancyGridFields) -> Any:
@@ -231,7 +232,11 @@ def decode_odometry(payload: bytes | bytearray | memoryview, *,
 # -- tf2_msgs/msg/TFMessage ----------------------------------------------------------------
 def decode_tf_message(payload: bytes | bytearray | memoryview, *,
                       max_bytes: int = 1 << 20) -> list[TransformFields]:
-    m = _deserialize(payload, TF_MESSAGE, max_bytes)
+    return tf_fields(_deserialize(payload, TF_MESSAGE, max_bytes))
+
+
+def tf_fields(m: Any) -> list[TransformFields]:
+    """A rosbags TFMessage object -> its transforms (at most :data:`MAX_TRANSFORMS`)."""
     if len(m.transforms) > MAX_TRANSFORMS:
         raise Ros2DecodeError("too_large", f"{len(m.transforms)} transforms in one message "
                                            f"exceed {MAX_TRANSFORMS}")
@@ -295,4 +300,4 @@ def encode_get_map_response(g: OccupancyGridFields) -> bytes:
 def decode_get_map_response(payload: bytes | bytearray | memoryview, *,
                             max_bytes: int = DEFAULT_MAX_PAYLOAD,
                             max_cells: int = DEFAULT_MAX_CELLS) -> OccupancyGridFields:
-    return _grid_fields(_deserialize(payload, GET_MAP_RESPONSE, max_bytes).map, max_cells)
+    return grid_fields(_deserialize(payload, GET_MAP_RESPONSE, max_bytes).map, max_cells)
