@@ -405,7 +405,7 @@ class Ros2Bridge:
                 self.session, key, cache=zenoh.ext.CacheConfig(max_samples=QOS_LATCHED.depth),
                 publisher_detection=True,
                 sample_miss_detection=zenoh.ext.MissDetectionConfig(
-                    sporadic_heartbeat=HEARTBEAT_PERIOD_S),
+                    heartbeat=None, sporadic_heartbeat=HEARTBEAT_PERIOD_S),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE)
             token_key = self._entity_token(EntityKind.PUBLISHER, topic, OCCUPANCY_GRID,
