@@ -115,7 +115,7 @@ def _ros1_typestore() -> Any:
 def _header(ts: Any, frame: str, t: float) -> object:
     T = ts.types
     sec = int(t)
-    stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)))
+    stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9))
     if "seq" in dict(ts.fielddefs["std_msgs/msg/Header"][1]):  # ROS 1
         return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
     return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)

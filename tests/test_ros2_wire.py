@@ -161,8 +161,8 @@ def test_attachment_current_form_built_by_hand_and_by_zenoh_ext() -> None:
     assert gid_of(token) == gid
     by_hand = struct.pack("<qqB", 1, 1_700_000_000_123_456_789, 16) + gid
     assert len(by_hand) == 33
-    by_zenoh = zenoh.ext.z_serialize((zenoh.ext.Int64(1), zenoh.ext.Int64(1_700_000_000_123_456_789),
-                                      gid)).to_bytes()
+    ts_ns = zenoh.ext.Int64(1_700_000_000_123_456_789)
+    by_zenoh = zenoh.ext.z_serialize((zenoh.ext.Int64(1), ts_ns, gid)).to_bytes()
     assert by_zenoh == by_hand
     att = parse_attachment(by_hand)
     assert (att.sequence_number, att.source_timestamp_ns, att.gid) == \
