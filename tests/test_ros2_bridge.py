@@ -28,6 +28,7 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from rosbags.typesys.base import Nodetype  # noqa: E402
 
 from sogm_service.adapters.ros2.convert import window_to_grid  # noqa: E402
+from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region  # noqa: E402
 from sogm_service.core.geometry import GridGeometry, Pose2D  # noqa: E402
 from sogm_service.core.tiles import TiledMap, TileLattice  # noqa: E402
 from sogm_service.service import pipeline  # noqa: E402
@@ -149,8 +150,7 @@ class Rig:
     bridge: Ros2Bridge
     ros: zenoh.Session
     rec: Recorder
-    layers: dict[str, Any]
-    fused: list[Any]
+    snaps: list[MapSnapshot]
 
 
 def tokens(session: zenoh.Session) -> list[str]:
@@ -176,13 +176,11 @@ def rig() -> Iterator[Rig]:
     server_side = open_session(loopback_settings(listen=endpoint))
     ros = open_session(loopback_settings(connect=endpoint))
     rec = Recorder()
-    layers: dict[str, Any] = {}
-    fused: list[Any] = []
+    snaps: list[MapSnapshot] = []
     bridge = Ros2Bridge(server_side, map_name=MAP,
                         settings=Ros2BridgeSettings(humble=True),
                         on_ism=rec.on_ism, on_pose=rec.on_pose, on_reject=rec.on_reject,
-                        layers_source=lambda: dict(layers),
-                        fused_source=lambda: fused[-1] if fused else None)
+                        map_source=lambda: snaps[-1] if snaps else MapSnapshot())
     try:
         # The bridge's service token is declared after its subscriptions: once the ROS side
         # sees it, those declarations have reached it too.
@@ -190,7 +188,7 @@ def rig() -> Iterator[Rig]:
         ss = (f"@ros2_lv/0/{zid}/0/" + r"\d+" + f"/SS/%/%/sogm_service/%sogm%{MAP}%get_map/"
               f"{GETMAP_T}/{GETMAP_H}/::,10:,:,:,,")
         assert wait_until(lambda: any(re.fullmatch(ss, t) for t in tokens(ros)), TIMEOUT)
-        yield Rig(bridge, ros, rec, layers, fused)
+        yield Rig(bridge, ros, rec, snaps)
     finally:
         bridge.close()
         ros.close()
@@ -333,17 +331,21 @@ def _expected_cells(fixed: np.ndarray) -> np.ndarray:
 
 
 def test_layers_and_map_reach_a_ros_subscriber_and_a_late_one(rig: Rig) -> None:
-    # a map with one fused ISM; the bridge publishes a window of it as the server would
+    # a map with two layers; the bridge publishes the region around a robot, as the server
     tiled = TiledMap(MAP, "map", TileLattice(0.05, 256))
     rng = np.random.default_rng(3)
-    cells = rng.choice(np.array([-1, 0, 20, 80, 100], np.int8), size=(20, 20))
-    pipeline.fuse_ism(tiled, IsmMessage(resolution=0.05, width=20, height=20,
-                                        encoding="occupancy_i8", data=cells.tobytes(),
-                                        origin=PoseModel(x=0.5, y=0.5)), "robot1/obstacle")
-    window = GridGeometry(0.05, 30, 30, Pose2D(0.0, 0.0, 0.0))
-    fixed = tiled.sample(window, ["robot1/obstacle"], "nearest")[0]
-    rig.layers["robot1/obstacle"] = window_to_grid(fixed, window, kind="fixed", stamp=9.5)
-    rig.fused.append(window_to_grid(fixed, window, kind="fixed", stamp=9.5))
+    for name, x0 in (("robot1/obstacle", 0.5), ("robot1/person", 0.8)):
+        cells = rng.choice(np.array([-1, 0, 20, 80, 100], np.int8), size=(20, 20))
+        pipeline.fuse_ism(tiled, IsmMessage(resolution=0.05, width=20, height=20,
+                                            encoding="occupancy_i8", data=cells.tobytes(),
+                                            origin=PoseModel(x=x0, y=0.5)), name)
+    window = publish_region(tiled, [(1.0, 1.0)], mode="robots", radius_m=0.75)
+    assert window == GridGeometry(0.05, 30, 30, Pose2D(0.25, 0.25, 0.0))
+    rig.snaps.append(map_snapshot(tiled, window, stamp=9.5, method="max"))
+    stack = tiled.sample(window, ["robot1/obstacle", "robot1/person"], "nearest")
+    expect_layer = _expected_cells(stack[0])
+    expect_map = _expected_cells(stack.max(axis=0))  # P_M by hand
+    assert not np.array_equal(expect_layer, expect_map)
 
     got: list[tuple[str, bytes, bytes]] = []
     sub = rig.ros.declare_subscriber(
@@ -352,21 +354,22 @@ def test_layers_and_map_reach_a_ros_subscriber_and_a_late_one(rig: Rig) -> None:
                                                    if s.attachment else b"")))
     try:
         barrier(rig.ros, rig.bridge.session)  # the subscription has reached the bridge
-        assert rig.bridge.publish_maps() == 2
-        assert wait_until(lambda: len(got) >= 2, TIMEOUT)
+        assert rig.bridge.publish_maps() == 3
+        assert wait_until(lambda: len(got) >= 3, TIMEOUT)
     finally:
         sub.undeclare()
-    keys = {k for k, _, _ in got}
-    assert keys == {f"0/sogm/{MAP}/layers/robot1/obstacle/{GRID_T}/{GRID_H}",
-                    f"0/sogm/{MAP}/map/{GRID_T}/{GRID_H}"}
-    expect = _expected_cells(fixed)
-    assert np.count_nonzero(expect >= 0) > 100
+    expected = {f"0/sogm/{MAP}/layers/robot1/obstacle/{GRID_T}/{GRID_H}": expect_layer,
+                f"0/sogm/{MAP}/layers/robot1/person/{GRID_T}/{GRID_H}": _expected_cells(stack[1]),
+                f"0/sogm/{MAP}/map/{GRID_T}/{GRID_H}": expect_map}
+    assert {k for k, _, _ in got} == set(expected) and len(got) == 3
+    assert np.count_nonzero(expect_layer >= 0) > 100
     found = tokens(rig.ros)
     for key, payload, att in got:
         m = _decode_grid(payload)
         assert (m.info.width, m.info.height) == (30, 30) and m.header.frame_id == "map"
         assert m.info.resolution == pytest.approx(0.05) and m.header.stamp.sec == 9
-        assert np.array_equal(np.asarray(m.data).reshape(30, 30), expect)
+        assert (m.info.origin.position.x, m.info.origin.position.y) == (0.25, 0.25)
+        assert np.array_equal(np.asarray(m.data).reshape(30, 30), expected[key])
         assert len(att) == 33 and att[16] == 16
         seq, stamp_ns = struct.unpack_from("<qq", att)
         assert seq == 1 and abs(stamp_ns - time.time_ns()) < 600e9
@@ -388,14 +391,14 @@ def test_layers_and_map_reach_a_ros_subscriber_and_a_late_one(rig: Rig) -> None:
     finally:
         adv.undeclare()
     m = _decode_grid(late[0][1])
-    assert np.array_equal(np.asarray(m.data).reshape(30, 30), expect)
+    assert np.array_equal(np.asarray(m.data).reshape(30, 30), expect_map)
     assert struct.unpack_from("<q", late[0][2])[0] == 1
 
 
 def test_get_map_answers_with_the_request_echoed(rig: Rig) -> None:
     grid = window_to_grid(np.array([[0, 3000], [-3000, 0]], np.int16),
                           GridGeometry(0.1, 2, 2, Pose2D(1.0, 2.0, 0.0)), kind="fixed")
-    rig.fused.append(grid)
+    rig.snaps.append(MapSnapshot({}, grid))
     client_token = "@ros2_lv/0/abc/0/40/SC/%/%/nav2_client/%sogm%testmap%get_map/" \
                    f"{GETMAP_T}/{GETMAP_H}/::,10:,:,:,,"
     gid = spec_gid(client_token)

@@ -13,11 +13,15 @@ server and talks to it through callbacks:
 * Poses: PoseStamped on ``/{robot}/pose``, Odometry on ``/{robot}/odom`` and TFMessage on
   ``/tf`` + ``/tf_static`` (the chain ``map_frame`` -> ``robot_frame``), each to
   ``on_pose(robot, x, y, yaw, stamp)``.
-* Maps out: :meth:`Ros2Bridge.publish_maps` asks ``layers_source()`` and ``fused_source()``
-  for OccupancyGrids and publishes each that changed on ``/sogm/<map>/layers/<layer>`` and
-  ``/sogm/<map>/map``, TRANSIENT_LOCAL depth 1: a Zenoh advanced publisher with a cache of
-  one sample and publisher detection, so a late RViz or nav2 (advanced subscriber with
-  history and late-publisher detection, as rmw_zenoh declares them) still gets the map.
+* Maps out: :meth:`Ros2Bridge.publish_maps` asks ``map_source()`` for a
+  :class:`~sogm_service.adapters.ros2.views.MapSnapshot` (layer grids and the fused grid, as
+  :func:`~sogm_service.adapters.ros2.views.map_snapshot` makes them) and publishes each grid
+  that changed on ``/sogm/<map>/layers/<layer>`` and ``/sogm/<map>/map``, TRANSIENT_LOCAL
+  depth 1: a Zenoh advanced publisher with a cache of one sample, publisher detection and a
+  sporadic heartbeat, so a late RViz or nav2 (advanced subscriber with history and
+  late-publisher detection, as rmw_zenoh declares them) still gets the map.  Congestion
+  control is BLOCK (rmw_zenoh uses DROP for KEEP_LAST): maps are megabytes, are only sent when
+  they change, and a dropped one would not come again until the next change.
   Attachments carry a sequence number from 1 per publisher, the time and the publisher's gid.
 * ``nav_msgs/srv/GetMap`` on ``/sogm/<map>/get_map``: a complete queryable; the reply carries
   the CDR response and an attachment echoing the request's sequence number and client gid.
@@ -39,7 +43,7 @@ import struct
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -91,6 +95,7 @@ from sogm_service.adapters.ros2.keys import (
     topic_layer,
     type_hash,
 )
+from sogm_service.adapters.ros2.views import MapSnapshot
 from sogm_service.wire.messages import DEFAULT_MAX_ISM_CELLS, IsmMessage
 
 log = logging.getLogger("sogm_service.service.ros2_bridge")
@@ -98,8 +103,7 @@ log = logging.getLogger("sogm_service.service.ros2_bridge")
 OnIsm = Callable[[str, str, IsmMessage], None]
 OnPose = Callable[[str, float, float, float, float], None]
 OnReject = Callable[[str, str], None]
-LayersSource = Callable[[], Mapping[str, OccupancyGridFields]]
-FusedSource = Callable[[], OccupancyGridFields | None]
+MapSource = Callable[[], MapSnapshot]
 
 QOS_TF = Qos(depth=100)
 HEARTBEAT_PERIOD_S = 1.0
@@ -163,16 +167,14 @@ class Ros2Bridge:
                  settings: Ros2BridgeSettings | None = None,
                  on_ism: OnIsm | None = None, on_pose: OnPose | None = None,
                  on_reject: OnReject | None = None,
-                 layers_source: LayersSource | None = None,
-                 fused_source: FusedSource | None = None) -> None:
+                 map_source: MapSource | None = None) -> None:
         self.session = session
         self.settings = s = settings or Ros2BridgeSettings()
         self.map_name = map_name
         self._on_ism = on_ism
         self._on_pose = on_pose
         self._on_reject = on_reject
-        self._layers_source = layers_source
-        self._fused_source = fused_source
+        self._map_source = map_source
         self.zid = str(session.info.zid())
         self._ids = itertools.count(1)
         self.node_id = 0
@@ -432,17 +434,17 @@ class Ros2Bridge:
         return True
 
     def publish_maps(self) -> int:
-        """Ask the sources and publish what changed; returns how many grids were sent."""
+        """Ask ``map_source`` and publish what changed; returns how many grids were sent."""
+        if self._map_source is None:
+            return 0
+        snap = self._map_source()
         sent = 0
-        if self._layers_source is not None:
-            for layer, grid in self._layers_source().items():
-                sent += self.publish_grid(self.layer_topic(layer), grid)
-        if self._fused_source is not None:
-            fused = self._fused_source()
-            if fused is not None:
-                with self._lock:
-                    self._last_fused = fused
-                sent += self.publish_grid(self.map_topic, fused)
+        for layer, grid in snap.layers.items():
+            sent += self.publish_grid(self.layer_topic(layer), grid)
+        if snap.fused is not None:
+            with self._lock:
+                self._last_fused = snap.fused
+            sent += self.publish_grid(self.map_topic, snap.fused)
         return sent
 
     # -- GetMap ---------------------------------------------------------------------------
@@ -459,8 +461,8 @@ class Ros2Bridge:
             return
         with self._lock:
             grid = self._last_fused
-        if grid is None and self._fused_source is not None:
-            grid = self._fused_source()
+        if grid is None and self._map_source is not None:
+            grid = self._map_source().fused
         if grid is None:  # nothing mapped yet: an empty map, as a map_server without one
             grid = OccupancyGridFields(self.settings.map_frame, time.time(), 0.05, 0, 0,
                                        (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0),
