@@ -130,6 +130,7 @@ class Recorder:
     isms: list[tuple[str, str, IsmMessage]] = field(default_factory=list)
     poses: list[tuple[str, float, float, float, float]] = field(default_factory=list)
     rejects: list[tuple[str, str]] = field(default_factory=list)
+    rejected_what: list[str] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_ism(self, key: str, layer: str, msg: IsmMessage) -> None:
@@ -140,9 +141,10 @@ class Recorder:
         with self.lock:
             self.poses.append((robot, x, y, yaw, stamp))
 
-    def on_reject(self, code: str, text: str) -> None:
+    def on_reject(self, what: str, code: str, text: str) -> None:
         with self.lock:
             self.rejects.append((code, text))
+            self.rejected_what.append(what)
 
 
 @dataclass
@@ -265,6 +267,7 @@ def test_bad_samples_are_refused_with_their_codes(rig: Rig) -> None:
     finally:
         pub.close()
     codes = [c for c, _ in rig.rec.rejects]
+    assert set(rig.rec.rejected_what) == {"ism"}
     assert codes == ["bad_attachment", "bad_attachment", "bad_cdr", "non_planar",
                      "out_of_range"]
     assert rig.bridge.stats()["rejected"] == {"bad_attachment": 2, "bad_cdr": 1,
@@ -295,6 +298,8 @@ def test_poses_from_pose_stamped_and_tf(rig: Rig) -> None:
             "geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=3.0, y=4.0, z=0.0),
                                       orientation=quat(0.5)))
         pose_pub.put(bytes(TS.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped")))
+        odom_frame = T["geometry_msgs/msg/PoseStamped"](header=header("odom", 5), pose=msg.pose)
+        pose_pub.put(bytes(TS.serialize_cdr(odom_frame, "geometry_msgs/msg/PoseStamped")))
 
         def tfs(parent: str, child: str, x: float, yaw: float) -> Any:
             return T["geometry_msgs/msg/TransformStamped"](
@@ -306,10 +311,12 @@ def test_poses_from_pose_stamped_and_tf(rig: Rig) -> None:
             tfs("map", "robot2/odom", 2.0, math.pi / 2), tfs("robot2/odom", "robot2/base_link",
                                                             1.0, 0.0)])
         tf_pub.put(bytes(TS.serialize_cdr(tf, "tf2_msgs/msg/TFMessage")))
-        assert wait_until(lambda: len(rig.rec.poses) == 2, TIMEOUT), rig.rec.rejects
+        assert wait_until(lambda: len(rig.rec.poses) == 2 and len(rig.rec.rejects) == 1,
+                          TIMEOUT), rig.rec.rejects
     finally:
         pose_pub.close()
         tf_pub.close()
+    assert (rig.rec.rejected_what, rig.rec.rejects[0][0]) == (["pose"], "wrong_frame")
     by_robot = {p[0]: p for p in rig.rec.poses}
     r1 = by_robot["robot1"]
     assert r1[1:3] == (3.0, 4.0) and r1[3] == pytest.approx(0.5) and r1[4] == 5.0

@@ -8,8 +8,9 @@ server and talks to it through callbacks:
   checked (Jazzy/Kilted/Rolling's RIHS01 hash; Humble's ``TypeHashNotSupported`` only with
   ``humble``), then the attachment (current or keyed form), then the CDR; the grid becomes an
   :class:`~sogm_service.wire.messages.IsmMessage` handed to ``on_ism(key, layer, msg)`` with
-  layer and robot from the topic.  Every refusal goes to ``on_reject(code, text)`` and is
-  counted; nothing is fused from a refused sample.
+  layer and robot from the topic.  Every refusal goes to ``on_reject(what, code, text)``
+  (``what``: ``ism``, ``pose``, ``tf`` or ``get_map``) and is counted per code; nothing is
+  fused from a refused sample.
 * Poses: PoseStamped on ``/{robot}/pose``, Odometry on ``/{robot}/odom`` and TFMessage on
   ``/tf`` + ``/tf_static`` (the chain ``map_frame`` -> ``robot_frame``), each to
   ``on_pose(robot, x, y, yaw, stamp)``.
@@ -102,7 +103,7 @@ log = logging.getLogger("sogm_service.service.ros2_bridge")
 
 OnIsm = Callable[[str, str, IsmMessage], None]
 OnPose = Callable[[str, float, float, float, float], None]
-OnReject = Callable[[str, str], None]
+OnReject = Callable[[str, str, str], None]  # (what, code, text)
 MapSource = Callable[[], MapSnapshot]
 
 QOS_TF = Qos(depth=100)
@@ -257,13 +258,13 @@ class Ros2Bridge:
         with self._lock:
             self.counters[name] += n
 
-    def _reject(self, code: str, text: str) -> None:
+    def _reject(self, what: str, code: str, text: str) -> None:
         with self._lock:
             self.rejected[code] += 1
         log.debug("ROS 2 input refused [%s]: %s", code, text)
         if self._on_reject is not None:
             try:
-                self._on_reject(code, text)
+                self._on_reject(what, code, text)
             except Exception:
                 log.exception("on_reject failed")
 
@@ -339,7 +340,7 @@ class Ros2Bridge:
             msg = grid_to_ism(grid, layer=layer, robot=robot, max_tilt=s.max_tilt,
                               max_cells=s.max_cells)
         except Ros2DecodeError as exc:
-            self._reject(exc.code, f"{key}: {exc.message}")
+            self._reject("ism", exc.code, f"{key}: {exc.message}")
             return
         self._ensure_subscription_token(topic, OCCUPANCY_GRID)
         self._count("isms_accepted")
@@ -370,7 +371,7 @@ class Ros2Bridge:
                     raise Ros2DecodeError("bad_key", f"{topic} does not match {pattern}")
                 pose = pose_to_robot(decode(payload), robot, self.settings.map_frame)
             except Ros2DecodeError as exc:
-                self._reject(exc.code, f"{key}: {exc.message}")
+                self._reject("pose", exc.code, f"{key}: {exc.message}")
                 return
             self._ensure_subscription_token(topic, ros_type)
             self._emit_pose(pose)
@@ -386,7 +387,7 @@ class Ros2Bridge:
                 with self._tf_lock:
                     poses = self._tf.update(transforms, static=static)
             except Ros2DecodeError as exc:
-                self._reject(exc.code, f"{key}: {exc.message}")
+                self._reject("tf", exc.code, f"{key}: {exc.message}")
                 return
             for p in poses:
                 self._emit_pose(p)
@@ -456,7 +457,7 @@ class Ros2Bridge:
             cdr.decode_get_map_request(q.payload.to_bytes() if q.payload is not None
                                        else cdr.CDR_LE_HEADER)
         except Ros2DecodeError as exc:
-            self._reject(exc.code, f"GetMap request {q.selector}: {exc.message}")
+            self._reject("get_map", exc.code, f"GetMap request {q.selector}: {exc.message}")
             q.reply_err(f"{exc.code}: {exc.message}".encode())
             return
         with self._lock:
