@@ -72,6 +72,24 @@ class Nav2Map:
                           width=g.width, height=g.height, encoding="occupancy_i8",
                           data=np.ascontiguousarray(self.occupancy).tobytes())
 
+    def ism_chunks(self, max_side: int = 1024, **kw: Any) -> list[IsmMessage]:
+        """The map as ISMs of at most ``max_side`` x ``max_side`` cells (for maps beyond the
+        server's ``max_ism_cells`` / ``max_ism_tiles``); blocks with no known cell are left
+        out.  ``kw`` as :meth:`ism`."""
+        if max_side < 1:
+            raise ValueError("max_side must be >= 1")
+        out = []
+        h, w = self.occupancy.shape
+        for v0 in range(0, h, max_side):
+            for u0 in range(0, w, max_side):
+                block = self.occupancy[v0:v0 + max_side, u0:u0 + max_side]
+                if not (block >= 0).any():
+                    continue
+                geom = self.geometry.subgrid(u0, v0, block.shape[1], block.shape[0])
+                out.append(Nav2Map(np.ascontiguousarray(block), geom, self.image,
+                                   self.mode).ism(**kw))
+        return out
+
 
 def trinary_pixels(values: npt.ArrayLike, kind: ValueKind, *,
                    occupied_thresh: float = OCCUPIED_THRESH,
