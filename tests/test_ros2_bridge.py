@@ -29,6 +29,7 @@ from rosbags.typesys.base import Nodetype  # noqa: E402
 
 from sogm_service.adapters.ros2.convert import window_to_grid  # noqa: E402
 from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region  # noqa: E402
+from sogm_service.client import MapClient  # noqa: E402
 from sogm_service.core.geometry import GridGeometry, Pose2D  # noqa: E402
 from sogm_service.core.tiles import TiledMap, TileLattice  # noqa: E402
 from sogm_service.service import pipeline  # noqa: E402
@@ -426,3 +427,49 @@ def test_get_map_answers_with_the_request_echoed(rig: Rig) -> None:
                            timeout=TIMEOUT))
     assert len(bad) == 1 and bad[0].err is not None
     assert bad[0].err.payload.to_bytes().startswith(b"bad_attachment")
+
+
+def test_serve_with_ros2_fuses_a_spec_grid_like_a_native_ism_and_publishes_the_map(
+        tmp_path: Any) -> None:
+    """The real ``serve`` with ``[ros2] enabled``: a grid from a spec-built ROS publisher goes
+    through the server's own pipeline (the same cells as the native ISM fused in the core), and
+    a ROS subscriber gets the fused map, decoded with rosbags."""
+    from tests.conftest import start_server, wait_processed
+
+    srv = start_server(tmp_path, {"map": {"name": MAP},
+                                  "ros2": {"enabled": True, "publish_period_s": 0.2,
+                                           "region": "known"}})
+    ros = open_session(loopback_settings(connect=srv.endpoint))
+    maps: list[bytes] = []
+    sub = ros.declare_subscriber(f"0/sogm/{MAP}/map/{GRID_T}/*",
+                                 lambda s: maps.append(s.payload.to_bytes()))
+    pub = SpecPublisher(ros, "/ism/robot1/obstacle", GRID_T, GRID_H, entity_id=21)
+    try:
+        zid_ss = "/SS/%/%/sogm_service/"  # the server's GetMap token: declared last
+        assert wait_until(lambda: any(zid_ss in t for t in tokens(ros)), TIMEOUT)
+        cells = np.random.default_rng(5).choice(np.array([-1, 0, 30, 70, 100], np.int8),
+                                                size=(40, 50))
+        pub.put(grid_cdr(cells, res=0.05, x=0.5, y=0.25, yaw=0.0))
+        with MapClient.connect(srv.endpoint, map_name=MAP) as client:
+            counters = wait_processed(client, 1)
+            assert counters.get("isms_fused") == 1, client.stats().rejected
+            window = dict(x=1.75, y=1.25, width=2.5, height=2.0, resolution=0.05,
+                          encoding="logodds_i16")
+            got = client.submap(**window)
+        local = TiledMap(MAP, "map", TileLattice(0.05, 256))
+        pipeline.fuse_ism(local, IsmMessage(
+            robot="robot1", stamp=20.25, resolution=0.05, origin=PoseModel(x=0.5, y=0.25),
+            width=50, height=40, encoding="occupancy_i8", data=cells.tobytes()),
+            "robot1/obstacle")
+        assert got.layers == ["robot1/obstacle"]
+        want = local.sample(got.geometry, ["robot1/obstacle"], "biodds")
+        assert np.count_nonzero(want) > 1000 and np.array_equal(got.data, want)
+        assert wait_until(lambda: bool(maps), TIMEOUT)
+        grid = _decode_grid(maps[-1])
+        assert grid.info.resolution == pytest.approx(0.05) and grid.header.frame_id == "map"
+        assert (np.asarray(grid.data) != -1).sum() >= np.count_nonzero(cells != -1)
+    finally:
+        pub.close()
+        sub.undeclare()
+        ros.close()
+        assert srv.terminate() == 0

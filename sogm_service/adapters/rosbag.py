@@ -43,7 +43,8 @@ from sogm_service.adapters.ros2.convert import DEFAULT_MAX_TILT, TfTree, frame_i
 from sogm_service.adapters.ros2.errors import Ros2DecodeError
 from sogm_service.adapters.ros2.keys import LASER_SCAN, OCCUPANCY_GRID, TF_MESSAGE, topic_layer
 from sogm_service.core.geometry import Pose2D
-from sogm_service.wire.messages import DEFAULT_MAX_ISM_CELLS, IsmMessage
+from sogm_service.wire.limits import MAX_ISM_CELLS
+from sogm_service.wire.messages import IsmMessage
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,13 @@ class BagStats:
     unlocalized: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
 
+    def summary(self) -> str:
+        """One line: what was read and what was passed over, by reason."""
+        refused = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "none"
+        return (f"messages: {self.messages}; scans {self.scans}, grids {self.grids}, "
+                f"transforms {self.transforms}; unlocalized scans {self.unlocalized}; "
+                f"refused: {refused}")
+
 
 class BagReader:
     """Iterate a bag's scans (with TF poses) and grids; ``len()`` is the messages it reads.
@@ -87,7 +95,7 @@ class BagReader:
                  grid_topics: Sequence[str] | None = None,
                  tf_topics: Sequence[str] = ("/tf", "/tf_static"),
                  ism_prefix: str = "/ism", max_tilt: float = DEFAULT_MAX_TILT,
-                 max_cells: int = DEFAULT_MAX_ISM_CELLS) -> None:
+                 max_cells: int = MAX_ISM_CELLS) -> None:
         from rosbags.highlevel import AnyReader  # the import costs ~0.1 s; only when used
 
         ps = [paths] if isinstance(paths, (str, Path)) else list(paths)

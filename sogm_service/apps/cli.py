@@ -54,6 +54,18 @@ def _certs(argv: list[str]) -> int:
     return certs.main(argv)
 
 
+def _export(argv: list[str]) -> int:
+    from sogm_service.apps import nav2tool
+
+    return nav2tool.export_main(argv)
+
+
+def _import(argv: list[str]) -> int:
+    from sogm_service.apps import nav2tool
+
+    return nav2tool.import_main(argv)
+
+
 def _bench(argv: list[str]) -> int:
     from sogm_service import bench
 
@@ -68,6 +80,8 @@ _DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
     "replay": (_replay, "replay a CARMEN laser log into a map"),
     "bench": (_bench, "the performance suite"),
     "certs": (_certs, "a dev PKI and mutual-TLS / access-control Zenoh configs"),
+    "export": (_export, "export nav2 --out DIR: map.yaml + map.pgm for nav2's map_server"),
+    "import": (_import, "import nav2 map.yaml --layer NAME: fuse a nav2 map as a prior"),
 }
 
 
@@ -114,6 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="Zenoh connect endpoint (repeatable; overrides the config)")
     serve.add_argument("--storage", type=Path, default=None, help="tile store directory")
     _zenoh_config_arg(serve)
+    serve.add_argument("--ros2", action="store_true",
+                       help="serve ROS 2 robots and tools over rmw_zenoh ([ros2] enabled; "
+                            "needs the ros2 extra)")
+    serve.add_argument("--ros2-domain", type=int, default=None, metavar="N",
+                       help="ROS_DOMAIN_ID (default: the config's, 0)")
 
     query = sub.add_parser("query", help="query a running server")
     qsub = query.add_subparsers(dest="what", required=True)
@@ -231,6 +250,21 @@ def _serve(args: argparse.Namespace) -> int:
     if args.storage:
         config = config.model_copy(
             update={"storage": config.storage.model_copy(update={"directory": args.storage})})
+    ros2: dict[str, Any] = {"enabled": True} if args.ros2 else {}
+    if args.ros2_domain is not None:
+        ros2["domain"] = args.ros2_domain
+    if ros2:
+        from pydantic import ValidationError
+
+        from sogm_service.service.config import Ros2Settings
+
+        try:
+            section = Ros2Settings.model_validate({**config.ros2.model_dump(), **ros2})
+        except ValidationError as exc:
+            print(f"sogm-service serve: --ros2-domain: {exc.errors()[0]['msg']}",
+                  file=sys.stderr)
+            return 2
+        config = config.model_copy(update={"ros2": section})
     from sogm_service.service.server import MapServer
 
     stop = stop_on_signal()

@@ -53,6 +53,17 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--robot", default="carmen")
     c.add_argument("--png", type=Path, default=Path("carmen-map.png"))
     c.add_argument("--npy", type=Path, default=None)
+    b = sub.add_parser("rosbag", help="a ROS 1 bag or a ROS 2 bag (sqlite3 or mcap): "
+                                      "LaserScan + /tf and OccupancyGrid topics")
+    b.add_argument("file", type=Path, help="the bag (a ROS 2 bag is its directory)")
+    b.add_argument("--connect", default=None,
+                   help="endpoint of a running server (default: an embedded one)")
+    b.add_argument("--map", default="default", help="map name of that server")
+    b.add_argument("--map-frame", default="map", help="the TF frame of the map")
+    b.add_argument("--resolution", type=float, default=0.05, help="laser ISM cell size (m)")
+    b.add_argument("--robot", default="rosbag", help="robot name of the laser scans")
+    b.add_argument("--png", type=Path, default=Path("rosbag-map.png"))
+    b.add_argument("--npy", type=Path, default=None)
     return p
 
 
@@ -62,9 +73,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sogm-service replay: no such file {args.file}", file=sys.stderr)
         return 2
     try:
-        result = replay_carmen(args.file, endpoint=args.connect, map_name=args.map,
-                               resolution=args.resolution, limit=args.limit, speed=args.speed,
-                               robot=args.robot)
+        if args.format == "rosbag":
+            result = replay_rosbag(args.file, endpoint=args.connect, map_name=args.map,
+                                   resolution=args.resolution, robot=args.robot,
+                                   map_frame=args.map_frame)
+        else:
+            result = replay_carmen(args.file, endpoint=args.connect, map_name=args.map,
+                                   resolution=args.resolution, limit=args.limit,
+                                   speed=args.speed, robot=args.robot)
     except NoScansError as exc:
         print(f"sogm-service replay: {args.file}: {exc}", file=sys.stderr)
         return 2
@@ -76,6 +92,80 @@ def main(argv: list[str] | None = None) -> int:
         print(result.stats.summary())
     print(f"wrote {args.png}" + (f" and {args.npy}" if args.npy else ""))
     return 0
+
+
+def replay_rosbag(path: Path, *, endpoint: str | None = None, map_name: str = "default",
+                  resolution: float = 0.05, robot: str = "rosbag",
+                  map_frame: str = "map") -> ReplayResult:
+    """Replay a ROS bag: ``LaserScan`` (posed by ``/tf``) as laser ISMs of ``robot``,
+    ``OccupancyGrid`` topics as ISMs as they are, into ``endpoint`` or an embedded server."""
+    from sogm_service.adapters.rosbag import BagGrid, BagReader, BagScan
+
+    with BagReader(path, map_frame=map_frame) as reader:
+        items = list(reader)
+        stats = reader.stats
+    scans = [i.scan for i in items if isinstance(i, BagScan)]
+    grids = [i for i in items if isinstance(i, BagGrid)]
+    if not scans and not grids:
+        raise NoScansError(f"no localised LaserScan and no OccupancyGrid to replay ({stats})")
+
+    def publish(ep: str) -> None:
+        from sogm_service.service.client import MapClient
+        from sogm_service.sim.fleet import replay_scans
+        from sogm_service.wire import codec
+
+        if scans:
+            replay_scans(scans, ep, robot=robot, resolution=resolution, speed=0.0)
+        with MapClient.connect(ep, map_name=map_name) as client:
+            for grid in grids:
+                client.publish_raw(f"ism/{grid.layer}", codec.encode(grid.ism))
+
+    return _with_server(endpoint, map_name, resolution, lambda ep: _collect(
+        ep, publish, len(scans) + len(grids), scans, grids, map_name, resolution, robot,
+        stats))
+
+
+def _with_server(endpoint: str | None, map_name: str, resolution: float,
+                 run: Any) -> ReplayResult:
+    """``run(endpoint)`` against ``endpoint``, or against an embedded server on 127.0.0.1."""
+    if endpoint is not None:
+        result: ReplayResult = run(endpoint)
+        return result
+    from sogm_service.service.config import ServiceConfig
+    from sogm_service.service.server import MapServer
+    from sogm_service.service.session import free_tcp_endpoint
+
+    local = free_tcp_endpoint()
+    config = ServiceConfig.model_validate({"map": {"name": map_name, "resolution": resolution},
+                                           "zenoh": {"listen": [local]}})
+    server = MapServer(config).start()
+    try:
+        result = run(local)
+    finally:
+        server.stop()
+    return result
+
+
+def _collect(endpoint: str, publish: Any, n: int, scans: list[Any], grids: list[Any],
+             map_name: str, resolution: float, robot: str, stats: Any) -> ReplayResult:
+    """Publish, wait until the server handled every ISM, and read back the map's extent."""
+    from sogm_service.service.client import MapClient
+
+    publish(endpoint)
+    with MapClient.connect(endpoint, map_name=map_name, timeout=30.0) as client:
+        fused = _wait_fused(client, n)
+        info = client.info()
+        if not info.layers or info.bounds is None:
+            raise NoScansError(f"the server fused none of the {n} ISMs")
+        layer = f"{robot}/laser/obstacle" if scans else grids[0].layer
+        layer = layer if layer in info.layers else info.layers[0]
+        xmin, ymin, xmax, ymax = info.bounds
+        window = _bounds_window(scans, resolution) if scans else dict(
+            x=(xmin + xmax) / 2, y=(ymin + ymax) / 2, yaw=0.0, width=xmax - xmin,
+            height=ymax - ymin, resolution=resolution, interp="nearest")
+        sub = client.submap(**window, layers=[layer], encoding="prob_f32")
+    return ReplayResult(len(scans) + len(grids), fused, 0, sub.geometry,
+                        sub.probabilities()[0], stats)
 
 
 def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "default",

@@ -93,6 +93,32 @@ class LimitSettings(_Section):
     queue_policy: Literal["lossless", "latest"] = "lossless"
 
 
+class Ros2Settings(_Section):
+    """ROS 2 over rmw_zenoh (:mod:`sogm_service.service.ros2`); needs the ``ros2`` extra."""
+
+    enabled: bool = False
+    domain: Annotated[int, Field(ge=0, le=232)] = 0  # ROS_DOMAIN_ID
+    ism_prefix: str = "/ism"  # every nav_msgs/OccupancyGrid topic below it is an ISM
+    ism_source: Annotated[int, Field(ge=0)] = 0  # ROS ISMs use [[ism]][i]'s interp/matching
+    pose_topics: list[str] = ["/{robot}/pose"]  # geometry_msgs/PoseStamped
+    odom_topics: list[str] = ["/{robot}/odom"]  # nav_msgs/Odometry (header frame = map)
+    tf_topics: list[str] = ["/tf"]
+    tf_static_topics: list[str] = ["/tf_static"]
+    robot_frame: str = "{robot}/base_link"  # the TF chain [map] frame -> this
+    humble: bool = False  # also accept Humble's TypeHashNotSupported
+    topic_root: str = "/sogm"  # maps on /sogm/<map>/map and /sogm/<map>/layers/<layer>
+    node_name: str = "sogm_service"
+    publish_period_s: Annotated[float, Field(gt=0)] = 1.0
+    region: Literal["robots", "known"] = "robots"
+    region_radius_m: Annotated[float, Field(gt=0)] = 20.0
+    max_publish_cells: Annotated[int, Field(gt=0)] = 2048 * 2048
+    publish_layers: bool = True
+    layers: list[str] | None = None  # layers published one by one (default all)
+    fused_layers: list[str] | None = None  # layers pooled into /sogm/<map>/map (default all)
+    fused_method: Literal["max", "bayes"] = "max"
+    max_tilt_rad: Annotated[float, Field(gt=0)] = 0.01
+
+
 class ZenohSettings(_Section):
     mode: Literal["peer", "client", "router"] = "peer"
     listen: list[str] = []
@@ -110,6 +136,7 @@ class ServiceConfig(_Section):
     storage: StorageSettings = StorageSettings()
     limits: LimitSettings = LimitSettings()
     zenoh: ZenohSettings = ZenohSettings()
+    ros2: Ros2Settings = Ros2Settings()
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("ism")

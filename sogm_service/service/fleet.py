@@ -34,6 +34,7 @@ class FleetTracker:
                                    map_name=config.map.name)
         self._lock = threading.Lock()
         self._posed: set[str] = set()
+        self._positions: dict[str, tuple[float, float]] = {}
         self._publish: Publish | None = None
         self._tiles: Checkpointer | None = None
 
@@ -62,6 +63,7 @@ class FleetTracker:
 
     def _follow(self, robot: str, x: float, y: float, stamp: float) -> None:
         with self._lock:
+            self._positions[robot] = (x, y)
             event = self.manager.update(robot, x, y, stamp)
             entered, left = self.manager.roi_changes() if event else (set(), set())
         if event is None:
@@ -85,6 +87,11 @@ class FleetTracker:
         with self._lock:
             events = [self.tile_event(e) for e in self.manager.current_tiles().values()]
         return RobotTilesReply(map=self.config.map.name, robots=events)
+
+    def positions(self) -> list[tuple[float, float]]:
+        """Each robot's last known position (map frame)."""
+        with self._lock:
+            return list(self._positions.values())
 
     def robot_count(self) -> int:
         with self._lock:

@@ -48,11 +48,17 @@ _LAYER_NAME = re.compile(LAYER_NAME_PATTERN)
 
 @dataclass(frozen=True, slots=True)
 class IsmItem:
-    """A received ISM as the Zenoh callback queues it: which source, which key, the bytes."""
+    """A received ISM as the Zenoh callback queues it: which source, which key, the bytes.
+
+    An adapter (ROS 2) that decoded its own format queues the message instead (``msg``), with
+    the layer and robot its topic names."""
 
     source: int
     key: str
-    payload: bytes
+    payload: bytes = b""
+    msg: IsmMessage | None = None
+    layer: str = ""
+    robot: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,13 +156,20 @@ class IngestPipeline:
         self.stats.latency("fuse", time.perf_counter() - started)
 
     def decode(self, item: IsmItem) -> IsmMessage:
+        if item.msg is not None:  # decoded and validated by its adapter
+            return item.msg
         return codec.decode(IsmMessage, item.payload,
                             context={"max_cells": self.config.limits.max_ism_cells})
 
     def prepare(self, item: IsmItem, msg: IsmMessage) -> PreparedIsm:
         source = self.config.ism[item.source]
-        check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
-        layer = layer_name(msg, item.key, source.key_expr)
+        if item.msg is not None:
+            check_robot(msg.robot, item.robot or msg.robot or "")
+            layer = layer_name(msg.model_copy(update={"layer": item.layer or msg.layer}),
+                               item.key, source.key_expr)
+        else:
+            check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
+            layer = layer_name(msg, item.key, source.key_expr)
         inc = increments(msg, self.shared.frame, self.config.map.eps0)
         return PreparedIsm(msg, item.key, item.source, layer, inc, ism_geometry(msg))
 

@@ -97,7 +97,8 @@ from sogm_service.adapters.ros2.keys import (
     type_hash,
 )
 from sogm_service.adapters.ros2.views import MapSnapshot
-from sogm_service.wire.messages import DEFAULT_MAX_ISM_CELLS, IsmMessage
+from sogm_service.wire.limits import MAX_ISM_CELLS, MAX_PAYLOAD_BYTES
+from sogm_service.wire.messages import IsmMessage
 
 log = logging.getLogger("sogm_service.service.ros2_bridge")
 
@@ -130,8 +131,8 @@ class Ros2BridgeSettings:
     topic_root: str = "/sogm"
     node_name: str = "sogm_service"
     namespace: str = "/"
-    max_payload_bytes: int = 128 * 1024 * 1024
-    max_cells: int = DEFAULT_MAX_ISM_CELLS
+    max_payload_bytes: int = MAX_PAYLOAD_BYTES
+    max_cells: int = MAX_ISM_CELLS
     max_tilt: float = DEFAULT_MAX_TILT
     max_topics: int = 4096
     max_frames: int = 1024

@@ -80,6 +80,7 @@ class MapServer:
         self._session = session
         self._declared: list[Any] = []
         self._events: zenoh.Publisher | None = None
+        self._ros2: Any = None  # a service.ros2.Ros2Link when [ros2] enabled
         self.server_id = ""
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -97,6 +98,11 @@ class MapServer:
         self._worker.start()
         self._declare()
         self.fleet.attach(self._publish_event, self.tiles)
+        if self.config.ros2.enabled:
+            from sogm_service.service.ros2 import Ros2Link  # the ros2 extra: only when enabled
+
+            self._ros2 = Ros2Link(self.config, self._session, self.map, self._queue, self.fleet,
+                                  self.stats, self.pipeline.rejections)
         self.tiles.start()
         log.info("serving map %r (frame %s, %.3f m) as %s; ISMs on %s", self.config.map.name,
                  self.config.map.frame, self.config.map.resolution, self.server_id,
@@ -132,6 +138,9 @@ class MapServer:
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop accepting work, finish what is queued, flush the store, close the session."""
+        if self._ros2 is not None:
+            self._ros2.close(timeout)
+            self._ros2 = None
         self._queue.close()
         for entity in reversed(self._declared):
             try:
@@ -257,6 +266,8 @@ class MapServer:
         extra["robots"] = self.fleet.robot_count()
         extra.update(self.tiles.stats_extra())
         extra.update(self.matcher.stats_extra())
+        if self._ros2 is not None:
+            extra.update(self._ros2.stats_extra())
         return StatsReply(map=self.config.map.name, server_id=self.server_id,
                           uptime_s=time.monotonic() - self.stats.started, counters=counters,
                           rejected=rejected, queue_depth=self._queue.depth(),

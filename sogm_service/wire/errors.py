@@ -35,6 +35,28 @@ ISM_CODES: Final[dict[str, str]] = {
 """Why a well-formed ISM cannot go into this map (:class:`IsmRejectedError`); scan matching adds
 ``match_<reason>`` (:class:`sogm_service.core.matching.MatchReason`)."""
 
+ROS2_CODES: Final[dict[str, str]] = {
+    "bad_cdr": "the payload is not a CDR serialisation of the expected ROS 2 type",
+    "too_large": "the message exceeds the configured size limits",
+    "data_length": "the grid's data length is not width x height",
+    "out_of_range": "an occupancy value is outside 0..100 and -1",
+    "non_finite": "a number is NaN or infinite",
+    "non_positive_resolution": "the grid resolution is not positive",
+    "invalid_value": "a field has an invalid value",
+    "bad_quaternion": "a quaternion has (nearly) zero length",
+    "non_planar": "a quaternion is not a rotation about z",
+    "bad_attachment": "the sample carries no valid rmw_zenoh attachment",
+    "bad_key": "the key expression is not an rmw_zenoh data key",
+    "wrong_type": "the key names another ROS type than the one expected",
+    "type_hash": "the key's type hash is not the one this server knows for the type",
+    "humble_disabled": "a Humble sample (TypeHashNotSupported) while Humble support is off",
+    "bad_layer": "the topic gives an empty or invalid layer name",
+    "wrong_frame": "a frame id is not the configured one",
+    "too_many_frames": "the transform tree exceeds its frame limit",
+}
+"""Why a ROS 2 sample (rmw_zenoh wire: CDR, attachment, key) is refused
+(:class:`sogm_service.adapters.ros2.errors.Ros2DecodeError`)."""
+
 QUERY_CODES: Final[dict[str, str]] = {
     "bad_parameter": "a query parameter is missing, of the wrong type or out of range",
     "unknown_layer": "a requested layer does not exist",

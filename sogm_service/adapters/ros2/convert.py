@@ -31,7 +31,8 @@ from sogm_service.adapters.ros2.errors import Ros2DecodeError
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.wire.codec import DecodeError, validate
-from sogm_service.wire.messages import DEFAULT_MAX_ISM_CELLS, IsmMessage
+from sogm_service.wire.limits import MAX_ISM_CELLS
+from sogm_service.wire.messages import IsmMessage
 
 DEFAULT_MAX_TILT = 0.01
 """Largest tilt (rad, ~0.57 deg) of a grid's quaternion out of the plane that is still taken as
@@ -80,7 +81,7 @@ def yaw_quaternion(yaw: float) -> Quat:
 # -- OccupancyGrid -> ISM ------------------------------------------------------------------
 def grid_to_ism(g: OccupancyGridFields, *, layer: str | None = None, robot: str | None = None,
                 max_tilt: float = DEFAULT_MAX_TILT,
-                max_cells: int = DEFAULT_MAX_ISM_CELLS) -> IsmMessage:
+                max_cells: int = MAX_ISM_CELLS) -> IsmMessage:
     """A decoded OccupancyGrid as the project's ISM (``occupancy_i8``), validated."""
     yaw = quaternion_yaw(g.orientation, max_tilt=max_tilt, what="info.origin.orientation")
     if not math.isfinite(g.resolution):
