@@ -20,7 +20,7 @@ float32 log-odds and rounds.  The tests check it against an exact numpy oracle
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Literal
 
@@ -177,8 +177,10 @@ def tile_block(corners: npt.NDArray[np.float64], index: tuple[int, int],
 
 
 def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: TileLattice,
-                 interp: Interp = "biodds") -> Iterator[TilePatch]:
-    """Every tile's share of the increments ``inc`` (given in ``geometry``), raster order.
+                 interp: Interp = "biodds",
+                 owned: Callable[[tuple[int, int]], bool] | None = None) -> Iterator[TilePatch]:
+    """Every tile's share of the increments ``inc`` (given in ``geometry``), raster order;
+    with ``owned``, only the tiles it accepts (a fuse worker's share of the lattice).
 
     Aligned ISMs are sliced (views, no copy); others are warped block by block, the ISM's
     inverse transform computed once, into one scratch buffer: a warped patch is valid only
@@ -190,7 +192,9 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
         return
     offset = lattice_offset(geometry, lattice.resolution)
     if offset is not None:
-        yield from _aligned_patches(inc, offset, lattice.tile_size)
+        for part in _aligned_patches(inc, offset, lattice.tile_size):
+            if owned is None or owned(part.index):
+                yield part
         return
     res, t = lattice.resolution, lattice.tile_size
     corners = geometry.corners() / res
@@ -201,6 +205,8 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
     # page-faulted on every call by glibc, which costs as much as the warp itself.
     scratch = np.empty((t, t), dtype=src.dtype)
     for index in lattice.tiles_overlapping(geometry):
+        if owned is not None and not owned(index):
+            continue
         block = tile_block(corners, index, t)
         if block is None:
             continue

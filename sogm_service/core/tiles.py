@@ -5,19 +5,32 @@ fixed-point log-odds (:mod:`sogm_service.core.logodds`); a layer is added when i
 arrives; tiles are created on first write.  Writing an ISM resamples it straight into each tile
 it overlaps (no map-sized intermediate), so the cost is proportional to the ISM's footprint.
 
+Concurrency: the map is shared by ingestion workers, queries and checkpoints without a
+map-wide lock, so a query never waits for an ISM to be fused.
+
+* Every tile has its own lock, held only to add one tile's patch (Eq. 1), to copy a block out
+  of it, or to snapshot it; the resampling of an ISM (the expensive part) runs without any lock.
+  A reader sees each tile either before or after an ISM's patch, never halfway; an ISM that
+  spans several tiles may be visible in one and not yet in the next for the duration of its
+  fuse.
+* A structure lock guards the tile dictionary, the stored set and the layer list: creating,
+  loading, inserting and evicting tiles, adding layers.  It is never held while a tile's lock
+  is awaited by a writer, so it cannot deadlock with them.
+* Writers to one tile are serialised by its lock; callers that need a tile's ISMs applied in
+  arrival order (the service's fuse workers own disjoint tiles) keep that order themselves.
+
 This module is pure (no I/O): persistence and the memory budget are the caller's business
 through two hooks, ``loader`` (bring back a tile that is not resident) and the LRU order of
-:meth:`TiledMap.least_recently_used`.  Methods are not thread-safe; the server serialises
-mutation and reads with its own lock.
+:meth:`TiledMap.least_recently_used`.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import threading
 import time
-from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,9 +49,13 @@ from sogm_service.core.tiletypes import Loader, TileIndex
 _ALIGN_TOL = 1e-6
 
 
-@dataclass
+@dataclass(eq=False)
 class Tile:
-    """One tile: its layers (``(n, T, T)`` int16, n <= the map's layer count) and bookkeeping."""
+    """One tile: its layers (``(n, T, T)`` int16, n <= the map's layer count) and bookkeeping.
+
+    ``lock`` guards ``data``, ``stamp`` and the versions; ``evicted`` is set (under it) when the
+    tile leaves the map, so a writer holding a stale reference fetches the tile again.
+    """
 
     index: TileIndex
     data: npt.NDArray[np.int16]
@@ -46,6 +63,8 @@ class Tile:
     version: int = 0
     saved_version: int = -1
     last_used: float = field(default_factory=time.monotonic)
+    evicted: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
     def dirty(self) -> bool:
@@ -54,6 +73,23 @@ class Tile:
     @property
     def nbytes(self) -> int:
         return int(self.data.nbytes)
+
+
+@dataclass(frozen=True)
+class TileSnapshot:
+    """A consistent copy of one tile: layer names, ``(n, T, T)`` data, stamp and version, and
+    whether that version was not stored yet."""
+
+    index: TileIndex
+    layers: list[str]
+    data: npt.NDArray[np.int16]
+    stamp: float
+    version: int
+    dirty: bool
+
+
+Owner = Callable[[TileIndex], bool]
+"""Which tiles a call may write (a fuse worker's share of the lattice)."""
 
 
 class TiledMap:
@@ -68,9 +104,10 @@ class TiledMap:
         self.limits = logodds.clamp_limits(eps0)
         self.layers: list[str] = []
         self._layer_index: dict[str, int] = {}
-        self.tiles: OrderedDict[TileIndex, Tile] = OrderedDict()
+        self.tiles: dict[TileIndex, Tile] = {}
         self.stored: set[TileIndex] = set()
         self.loader = loader
+        self._struct = threading.RLock()
         # Versions come from one map-wide clock, never per tile: a tile evicted and loaded
         # back must not reuse version numbers that an in-flight save may still confirm.
         self._clock = itertools.count(1)
@@ -86,9 +123,12 @@ class TiledMap:
         if idx is None:
             if not create:
                 raise KeyError(layer)
-            idx = len(self.layers)
-            self.layers.append(layer)
-            self._layer_index[layer] = idx
+            with self._struct:
+                idx = self._layer_index.get(layer)
+                if idx is None:
+                    idx = len(self.layers)
+                    self.layers.append(layer)
+                    self._layer_index[layer] = idx
         return idx
 
     def adopt_layers(self, names: Iterable[str]) -> list[int]:
@@ -101,24 +141,32 @@ class TiledMap:
         return self.lattice.tile_size
 
     def known_tiles(self) -> set[TileIndex]:
-        return set(self.tiles) | self.stored
+        with self._struct:
+            return set(self.tiles) | self.stored
+
+    def resident(self) -> list[Tile]:
+        """The resident tiles now (a copy of the list: safe to iterate while others write)."""
+        with self._struct:
+            return list(self.tiles.values())
 
     def resident_bytes(self) -> int:
-        return sum(t.nbytes for t in self.tiles.values())
+        return sum(t.nbytes for t in self.resident())
 
     def get_tile(self, index: TileIndex, create: bool = False) -> Tile | None:
         """The tile at ``index``, loading it back if it was evicted; ``create`` makes it."""
         tile = self.tiles.get(index)
-        if tile is None and index in self.stored and self.loader is not None:
-            tile = self._load(index)
-        if tile is None and create:
-            t = self.tile_size
-            tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16),
-                        version=self.tick())
-            self.tiles[index] = tile
+        if tile is None and (create or index in self.stored):
+            with self._struct:
+                tile = self.tiles.get(index)
+                if tile is None and index in self.stored and self.loader is not None:
+                    tile = self._load(index)
+                if tile is None and create:
+                    t = self.tile_size
+                    tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16),
+                                version=self.tick())
+                    self.tiles[index] = tile
         if tile is not None:
             tile.last_used = time.monotonic()
-            self.tiles.move_to_end(index)
         return tile
 
     def _load(self, index: TileIndex) -> Tile | None:
@@ -128,47 +176,87 @@ class TiledMap:
             self.stored.discard(index)
             return None
         names, stack, stamp = loaded
+        version = self.tick()
+        tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
+                    saved_version=version)
+        self.tiles[index] = tile
+        return tile
+
+    def _stack_for(self, names: list[str], stack: npt.NDArray[np.int16]) -> npt.NDArray[np.int16]:
+        """A stored stack in this map's layer order.  Clamped: a tile stored under a wider
+        clamp (another eps0) or damaged would otherwise break the invariant Eq. 1's
+        add-then-clip relies on."""
         ids = self.adopt_layers(names)
         t = self.tile_size
         data = np.zeros((len(self.layers), t, t), dtype=np.int16)
-        # Clamp as insert_tile does: a tile stored under a wider clamp (another eps0) or damaged
-        # on disk would otherwise break the invariant Eq. 1's add-then-clip relies on.
         data[ids] = np.clip(stack, self.limits[0], self.limits[1])
-        version = self.tick()
-        tile = Tile(index, data, stamp=stamp, version=version, saved_version=version)
-        self.tiles[index] = tile
-        return tile
+        return data
 
     def insert_tile(self, index: TileIndex, names: list[str], stack: npt.NDArray[np.int16],
                     stamp: float, saved: bool) -> Tile:
         """Put a whole tile in place (from a store or a replica), replacing what was there."""
-        ids = self.adopt_layers(names)
         t = self.tile_size
         if stack.shape != (len(names), t, t):
             raise ValueError(f"tile stack shape {stack.shape} != {(len(names), t, t)}")
-        data = np.zeros((len(self.layers), t, t), dtype=np.int16)
-        data[ids] = np.clip(stack, self.limits[0], self.limits[1])
-        version = self.tick()
-        tile = Tile(index, data, stamp=stamp, version=version,
-                    saved_version=version if saved else -1)
-        self.tiles[index] = tile
-        self.tiles.move_to_end(index)
+        with self._struct:
+            version = self.tick()
+            tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
+                        saved_version=version if saved else -1)
+            old = self.tiles.get(index)
+            if old is not None:
+                with old.lock:
+                    old.evicted = True
+            self.tiles[index] = tile
         return tile
 
-    def evict(self, index: TileIndex) -> Tile | None:
-        """Drop a resident tile from memory (the caller made sure it is stored)."""
-        tile = self.tiles.pop(index, None)
-        if tile is not None:
+    def evict(self, index: TileIndex,
+              before: Callable[[TileSnapshot], None] | None = None) -> Tile | None:
+        """Drop a resident tile from memory.  ``before`` gets its last snapshot first, taken
+        with the tile locked (so no write can slip in between; the caller stores it)."""
+        with self._struct:
+            tile = self.tiles.get(index)
+            if tile is None:
+                return None
+            with tile.lock:
+                if before is not None:
+                    before(self._snapshot_locked(tile))
+                tile.evicted = True
+                del self.tiles[index]
             self.stored.add(index)
         return tile
 
+    def mark_saved(self, index: TileIndex, version: int) -> None:
+        """A snapshot of version ``version`` of the tile is in the store."""
+        with self._struct:
+            tile = self.tiles.get(index)
+            self.stored.add(index)
+        if tile is not None:
+            with tile.lock:
+                tile.saved_version = max(tile.saved_version, version)
+
     def least_recently_used(self) -> list[TileIndex]:
-        return list(self.tiles)
+        with self._struct:
+            tiles = list(self.tiles.values())
+        return [t.index for t in sorted(tiles, key=lambda t: t.last_used)]
 
     def tile_layers(self, tile: Tile) -> tuple[list[str], npt.NDArray[np.int16]]:
-        """``(layer names, (n, T, T) stack)`` of a tile, its layers padded to the map's."""
+        """``(layer names, (n, T, T) stack)`` of a tile, its layers padded to the map's (the
+        caller holds the tile's lock, or has the map to itself)."""
         self._grow(tile, len(self.layers) - 1)
         return list(self.layers), tile.data
+
+    def snapshot(self, index: TileIndex) -> TileSnapshot | None:
+        """A consistent copy of a resident tile (None when it is not resident)."""
+        tile = self.tiles.get(index)
+        if tile is None:
+            return None
+        with tile.lock:
+            return None if tile.evicted else self._snapshot_locked(tile)
+
+    def _snapshot_locked(self, tile: Tile) -> TileSnapshot:
+        names, data = self.tile_layers(tile)
+        return TileSnapshot(tile.index, names, data.copy(), tile.stamp, tile.version,
+                            tile.dirty)
 
     def _grow(self, tile: Tile, layer: int) -> None:
         have = tile.data.shape[0]
@@ -179,29 +267,37 @@ class TiledMap:
 
     # -- writing --------------------------------------------------------------------------
     def fuse(self, layer: str, inc: npt.NDArray[np.int16], geometry: GridGeometry,
-             interp: Interp = "biodds", stamp: float = 0.0) -> list[TileIndex]:
+             interp: Interp = "biodds", stamp: float = 0.0,
+             owned: Owner | None = None) -> list[TileIndex]:
         """Eq. 1: fuse fixed log-odds increments given in ``geometry`` into ``layer``.
 
         The increments are resampled into every tile the ISM overlaps (``interp``, outside the
-        ISM -> 0, i.e. untouched) and added with the clamp.  Returns the tiles written.
-        Per-tile work is kept to the slice or warp and the add: the ISM's alignment and inverse
-        transform are worked out once (:func:`sogm_service.core.resample.tile_patches`).
+        ISM -> 0, i.e. untouched) and added with the clamp; ``owned`` limits this to some tiles
+        (a fuse worker's share).  Returns the tiles written.  Only the add holds a lock (the
+        tile's); the ISM's alignment and inverse transform are worked out once
+        (:func:`sogm_service.core.resample.tile_patches`).
         """
         lid = self.layer_id(layer, create=True)
         touched = []
-        for part in tile_patches(inc, geometry, self.lattice, interp):
+        for part in tile_patches(inc, geometry, self.lattice, interp, owned):
             index, (u0, v0, w, h), patch = part.index, part.block, part.patch
-            tile = self.get_tile(index)
-            if tile is None:
-                if not informative(patch):
-                    continue  # an ISM of pure unknown creates no tile
-                tile = self.get_tile(index, create=True)
-                assert tile is not None
-            self._grow(tile, lid)
-            logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch, self.limits)
-            tile.version = self.tick()
-            tile.stamp = max(tile.stamp, stamp)
-            touched.append(index)
+            while True:  # until the tile we lock is the map's (not evicted meanwhile)
+                tile = self.get_tile(index)
+                if tile is None:
+                    if not informative(patch):
+                        break  # an ISM of pure unknown creates no tile
+                    tile = self.get_tile(index, create=True)
+                    assert tile is not None
+                with tile.lock:
+                    if tile.evicted:
+                        continue
+                    self._grow(tile, lid)
+                    logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch,
+                                         self.limits)
+                    tile.version = self.tick()
+                    tile.stamp = max(tile.stamp, stamp)
+                touched.append(index)
+                break
         return touched
 
     # -- reading --------------------------------------------------------------------------
@@ -213,14 +309,9 @@ class TiledMap:
         out = np.zeros((len(layer_ids), h, w), dtype=np.int16)
         for j in range(r0 // t, (r0 + h - 1) // t + 1):
             for i in range(c0 // t, (c0 + w - 1) // t + 1):
-                tile = self.tiles.get((i, j))
-                if tile is None and (i, j) in self.stored:
-                    tile = self.get_tile((i, j))
-                if tile is None:
-                    continue
-                tile.last_used = time.monotonic()
-                self.tiles.move_to_end((i, j))  # a read is a use: keep the LRU order true
-                self._copy_block(tile, (i, j), box, layer_ids, out)
+                tile = self.get_tile((i, j))  # loads an evicted tile back; a read is a use
+                if tile is not None:
+                    self._copy_block(tile, (i, j), box, layer_ids, out)
         return out
 
     def _copy_block(self, tile: Tile, index: TileIndex, box: tuple[int, int, int, int],
@@ -230,10 +321,12 @@ class TiledMap:
         tc, tr = index[0] * t, index[1] * t
         a0, a1 = max(c0, tc), min(c0 + w, tc + t)
         b0, b1 = max(r0, tr), min(r0 + h, tr + t)
-        for k, lid in enumerate(layer_ids):
-            if lid < tile.data.shape[0]:
-                out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = \
-                    tile.data[lid, b0 - tr:b1 - tr, a0 - tc:a1 - tc]
+        with tile.lock:  # an evicted tile still holds its last state: a consistent read
+            data = tile.data
+            for k, lid in enumerate(layer_ids):
+                if lid < data.shape[0]:
+                    out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = \
+                        data[lid, b0 - tr:b1 - tr, a0 - tc:a1 - tc]
 
     def sample(self, window: GridGeometry, layers: list[str],
                interp: Interp = "biodds") -> npt.NDArray[np.int16]:
@@ -271,8 +364,7 @@ def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:
     """Same resolution and heading, and ``dst`` starts on a cell corner of ``src``."""
     if abs(src.resolution - dst.resolution) > _ALIGN_TOL * src.resolution:
         return False
-    dyaw = wrap_angle(dst.origin.yaw - src.origin.yaw)
-    if abs(dyaw) > 1e-9:
+    if abs(wrap_angle(dst.origin.yaw - src.origin.yaw)) > 1e-9:
         return False
     m = src.world_to_cell() @ dst.cell_to_world()
     return bool(np.all(np.abs(m[:2, 2] - np.rint(m[:2, 2])) < _ALIGN_TOL))

@@ -19,10 +19,9 @@ import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.tiles import TiledMap, TileSnapshot
 from sogm_service.core.tiletypes import LoaderResult, TileIndex
 from sogm_service.service.config import ServiceConfig
-from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.stats import Stats
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.writer import TileWriter
@@ -55,17 +54,18 @@ class Checkpointer:
         self._keep = keep
         self.store: DirectoryStore | None = None
         self.writer: TileWriter | None = None
-        self._shared: SharedMap | None = None
+        self._tiled: TiledMap | None = None
         self._budget = int(config.storage.memory_budget_mb * 1e6)
         self._warned_budget = False
+        self._evicting = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     # -- lifecycle ------------------------------------------------------------------------
-    def attach(self, shared: SharedMap, tiled: TiledMap) -> None:
+    def attach(self, tiled: TiledMap) -> None:
         """Open the store (failing fast if another server holds it), index it into the map
-        (``tiled`` is the map inside ``shared``, not serving yet) and start the writer."""
-        self._shared = shared
+        (not serving yet) and start the writer."""
+        self._tiled = tiled
         self.store = open_store(self.config)
         if self.store is None:
             return
@@ -118,84 +118,88 @@ class Checkpointer:
 
     def checkpoint(self) -> int:
         """Snapshot every dirty tile to the writer; returns how many were submitted."""
-        if self.writer is None or self._shared is None:
+        if self.writer is None or self._tiled is None:
             return 0
-        with self._shared.locked() as tiled:
-            dirty = [t.index for t in tiled.tiles.values() if t.dirty]
-            self._submit(tiled, dirty)
+        n = self._submit_dirty(t.index for t in self._tiled.resident() if t.dirty)
         self.stats.count("checkpoints")
-        return len(dirty)
+        return n
 
     def persist(self, indices: Iterable[TileIndex]) -> None:
         """Snapshot these tiles now if they are resident and dirty (they left every ROI)."""
-        if self.writer is None or self._shared is None:
-            return
-        with self._shared.locked() as tiled:
-            self._submit(tiled, [i for i in indices if i in tiled.tiles and tiled.tiles[i].dirty])
+        if self.writer is not None:
+            self._submit_dirty(indices)
 
     def preload(self, indices: Iterable[TileIndex]) -> None:
         """Bring stored tiles back into memory before a robot needs them."""
-        if self.writer is None or self._shared is None:
+        if self.writer is None or self._tiled is None:
             return
-        with self._shared.locked() as tiled:
-            for index in indices:
-                if index not in tiled.tiles and index in tiled.stored:
-                    tiled.get_tile(index)
-                    self.stats.count("tiles_preloaded")
-
-    def _submit(self, tiled: TiledMap, indices: Iterable[TileIndex]) -> None:
-        """Copy resident tiles to the writer (the caller holds the map)."""
-        assert self.writer is not None
         for index in indices:
-            tile = tiled.tiles[index]
-            names, data = tiled.tile_layers(tile)
-            self.writer.submit(index[0], index[1], names, data.copy(), tile.stamp,
-                               token=tile.version)
+            if index not in self._tiled.tiles and index in self._tiled.stored:
+                self._tiled.get_tile(index)
+                self.stats.count("tiles_preloaded")
+
+    def _submit_dirty(self, indices: Iterable[TileIndex]) -> int:
+        assert self._tiled is not None
+        n = 0
+        for index in indices:
+            snap = self._tiled.snapshot(index)
+            if snap is not None and snap.dirty:
+                self._submit(snap)
+                n += 1
+        return n
+
+    def _submit(self, snap: TileSnapshot) -> None:
+        """A tile's snapshot (already a copy: the paper's double buffer) to the writer."""
+        assert self.writer is not None
+        self.writer.submit(snap.index[0], snap.index[1], snap.layers, snap.data, snap.stamp,
+                           token=snap.version)
 
     def _saved(self, index: TileIndex, token: Any) -> None:
-        if self._shared is None:
-            return
-        with self._shared.locked() as tiled:
-            tile = tiled.tiles.get(index)
-            if tile is not None and isinstance(token, int):
-                tile.saved_version = max(tile.saved_version, token)
-            tiled.stored.add(index)
+        if self._tiled is not None and isinstance(token, int):
+            self._tiled.mark_saved(index, token)
         self.stats.count("tiles_written")
 
     def _failed(self, index: TileIndex, token: Any, exc: BaseException) -> None:
         self.stats.count("tile_write_errors")
 
     def enforce_budget(self) -> None:
-        """Evict least recently used tiles outside every ROI until the budget holds."""
-        if self._shared is None:
+        """Evict least recently used tiles outside every ROI until the budget holds (one
+        eviction pass at a time; a caller that finds one running leaves it the work)."""
+        if self._tiled is None or not self._evicting.acquire(blocking=False):
             return
-        with self._shared.locked() as tiled:
-            over = tiled.resident_bytes() - self._budget
+        try:
+            self._evict_over_budget(self._tiled)
+        finally:
+            self._evicting.release()
+
+    def _evict_over_budget(self, tiled: TiledMap) -> None:
+        over = tiled.resident_bytes() - self._budget
+        if over <= 0:
+            return
+        if self.writer is None:
+            if not self._warned_budget:
+                log.warning("resident tiles exceed the memory budget and there is no "
+                            "tile store to evict to; set storage.directory")
+                self._warned_budget = True
+            return
+        keep = self._keep()
+        for index in tiled.least_recently_used():
             if over <= 0:
-                return
-            if self.writer is None:
-                if not self._warned_budget:
-                    log.warning("resident tiles exceed the memory budget and there is no "
-                                "tile store to evict to; set storage.directory")
-                    self._warned_budget = True
-                return
-            keep = self._keep()
-            for index in tiled.least_recently_used():
-                if over <= 0:
-                    break
-                if index in keep:
-                    continue
-                if tiled.tiles[index].dirty:
-                    self._submit(tiled, [index])
-                tile = tiled.evict(index)
-                over -= tile.nbytes if tile is not None else 0
-                self.stats.count("tiles_evicted")
+                break
+            if index in keep:
+                continue
+            tile = tiled.evict(index, before=self._submit_if_dirty)
+            over -= tile.nbytes if tile is not None else 0
+            self.stats.count("tiles_evicted")
+
+    def _submit_if_dirty(self, snap: TileSnapshot) -> None:
+        if snap.dirty:
+            self._submit(snap)
 
     def stats_extra(self) -> dict[str, Any]:
         extra: dict[str, Any] = {}
-        if self._shared is not None:
-            with self._shared.locked() as tiled:
-                extra["dirty_tiles"] = sum(1 for t in tiled.tiles.values() if t.dirty)
+        if self._tiled is not None:
+            extra["dirty_tiles"] = sum(1 for t in self._tiled.resident() if t.dirty)
         if self.writer is not None:
             w = self.writer.stats
             extra.update(writes_pending=self.writer.pending(), tiles_written_total=w.written,

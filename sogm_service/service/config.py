@@ -91,6 +91,7 @@ class LimitSettings(_Section):
     max_query_cells: Annotated[int, Field(gt=0)] = limits.MAX_QUERY_CELLS
     queue_size: Annotated[int, Field(ge=1, le=100000)] = limits.QUEUE_SIZE
     queue_policy: Literal["lossless", "latest"] = "lossless"
+    fuse_workers: Annotated[int, Field(ge=1, le=64)] = limits.FUSE_WORKERS
 
 
 class Ros2Settings(_Section):

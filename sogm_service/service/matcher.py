@@ -28,8 +28,8 @@ import zenoh
 from sogm_service.core.alignment import Alignment, align, at_map_resolution
 from sogm_service.core.geometry import GridGeometry, wrap_angle
 from sogm_service.core.matching import MatchParams, match_window
+from sogm_service.core.tiles import TiledMap
 from sogm_service.service.config import MatchingSettings, ServiceConfig
-from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.stats import Stats
 from sogm_service.wire import codec
 from sogm_service.wire.errors import IsmRejectedError
@@ -68,7 +68,7 @@ class Matcher:
         """Reports go out on this session (``<prefix>/<map>/matching/<ISM key>``)."""
         self._session = session
 
-    def place(self, shared: SharedMap, msg: IsmMessage, key: str, layer: str, source: int,
+    def place(self, tiled: TiledMap, msg: IsmMessage, key: str, layer: str, source: int,
               inc: npt.NDArray[np.int16], geometry: GridGeometry
               ) -> tuple[npt.NDArray[np.int16], GridGeometry]:
         """The increments and geometry to fuse; raises ``IsmRejectedError`` per policy."""
@@ -77,7 +77,7 @@ class Matcher:
         started = time.perf_counter()
         ism, claimed = at_map_resolution(inc, geometry, self.config.map.resolution)
         window = match_window(claimed, params)
-        alignment = align(ism, claimed, self._surroundings(shared, settings.layer or layer,
+        alignment = align(ism, claimed, self._surroundings(tiled, settings.layer or layer,
                                                            window), window, params)
         elapsed = time.perf_counter() - started
         result = alignment.result
@@ -94,14 +94,12 @@ class Matcher:
         return inc, geometry
 
     @staticmethod
-    def _surroundings(shared: SharedMap, layer: str,
+    def _surroundings(tiled: TiledMap, layer: str,
                       window: GridGeometry) -> npt.NDArray[np.int16] | None:
-        """The map's ``layer`` in ``window``, read under the map's lock (matching itself, ~13
-        ms of ORB and RANSAC, runs without it); None while the map has no such layer."""
-        with shared.locked() as tiled:
-            if layer not in tiled.layers:
-                return None
-            return tiled.sample(window, [layer], "biodds")[0]
+        """The map's ``layer`` in ``window``; None while the map has no such layer."""
+        if layer not in tiled.layers:
+            return None
+        return tiled.sample(window, [layer], "biodds")[0]
 
     def _account(self, accepted: bool, reason: str, alignment: Alignment,
                  elapsed: float) -> None:

@@ -20,6 +20,7 @@ import logging
 import re
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 import numpy.typing as npt
@@ -32,7 +33,7 @@ from sogm_service.core.tiletypes import TileIndex
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fleet import FleetTracker
-from sogm_service.service.mapstate import SharedMap
+from sogm_service.service.fusers import FuseJob, FuseWorkers
 from sogm_service.service.matcher import Matcher
 from sogm_service.service.stats import Rejections, Stats
 from sogm_service.wire import codec
@@ -121,39 +122,41 @@ def fuse_ism(tiled: TiledMap, msg: IsmMessage, layer: str,
 
 
 class IngestPipeline:
-    """Runs the steps of the module docstring for one queued ISM at a time."""
+    """Runs the steps of the module docstring for one queued ISM at a time; the fuse itself
+    goes to the :class:`~sogm_service.service.fusers.FuseWorkers` (several threads over
+    disjoint tiles), and the bookkeeping runs when the last of them is done."""
 
-    def __init__(self, config: ServiceConfig, shared: SharedMap, stats: Stats,
-                 matcher: Matcher, fleet: FleetTracker, tiles: Checkpointer) -> None:
+    def __init__(self, config: ServiceConfig, tiled: TiledMap, stats: Stats,
+                 matcher: Matcher, fleet: FleetTracker, tiles: Checkpointer,
+                 fusers: FuseWorkers) -> None:
         self.config = config
-        self.shared = shared
+        self.tiled = tiled
         self.stats = stats
         self.matcher = matcher
         self.fleet = fleet
         self.tiles = tiles
+        self.fusers = fusers
         self.rejections = Rejections(stats)
         self._lattice = TileLattice(config.map.resolution, config.map.tile_size)
 
     def handle(self, item: IsmItem) -> None:
-        """Decode, validate, prepare, check, align, fuse and book-keep one ISM; a refusal at
-        any step is counted with its reason and leaves the map unchanged."""
+        """Decode, validate, prepare, check and align one ISM, then hand it to the fuse
+        workers; a refusal at any step is counted with its reason and changes nothing."""
         started = time.perf_counter()
         try:
             msg = self.decode(item)
             ism = self.prepare(item, msg)
             check_extent(self._lattice, ism.geometry, self.config.limits.max_ism_tiles)
             ism = self.align(ism)
-            touched = self.fuse(ism)
-            self.bookkeeping(ism, touched)
+            self.tiled.layer_id(ism.layer, create=True)  # layers in arrival order, any K
+            self.fusers.submit(FuseJob(
+                ism.layer, ism.increments, ism.geometry, self.config.ism[ism.source].interp,
+                ism.msg.stamp, done=partial(self._fused, ism, started)))
         except SogmError as exc:
             self.rejections.reject(exc.code, f"{item.key}: {exc}")
-            return
         except Exception as exc:  # never let one ISM kill the worker
             log.exception("internal error on ISM from %s", item.key)
             self.rejections.reject("internal_error", f"{item.key}: {type(exc).__name__}: {exc}")
-            return
-        self.stats.fused()
-        self.stats.latency("fuse", time.perf_counter() - started)
 
     def decode(self, item: IsmItem) -> IsmMessage:
         if item.msg is not None:  # decoded and validated by its adapter
@@ -170,21 +173,35 @@ class IngestPipeline:
         else:
             check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
             layer = layer_name(msg, item.key, source.key_expr)
-        inc = increments(msg, self.shared.frame, self.config.map.eps0)
+        inc = increments(msg, self.tiled.frame, self.config.map.eps0)
         return PreparedIsm(msg, item.key, item.source, layer, inc, ism_geometry(msg))
 
     def align(self, ism: PreparedIsm) -> PreparedIsm:
-        """Scan matching per the source's policy: the ISM where it is to be fused."""
+        """Scan matching per the source's policy: the ISM where it is to be fused.  Matching
+        reads the map, so it waits until the ISMs before this one are fused."""
         if not self.matcher.enabled(ism.source):
             return ism
-        inc, geometry = self.matcher.place(self.shared, ism.msg, ism.key, ism.layer, ism.source,
+        self.fusers.drain()
+        inc, geometry = self.matcher.place(self.tiled, ism.msg, ism.key, ism.layer, ism.source,
                                            ism.increments, ism.geometry)
         return replace(ism, increments=inc, geometry=geometry)
 
-    def fuse(self, ism: PreparedIsm) -> list[TileIndex]:
-        interp = self.config.ism[ism.source].interp
-        with self.shared.locked() as tiled:
-            return tiled.fuse(ism.layer, ism.increments, ism.geometry, interp, ism.msg.stamp)
+    def _fused(self, ism: PreparedIsm, started: float, touched: list[TileIndex],
+               error: BaseException | None) -> None:
+        """The last fuse worker is done with ``ism``: count it and do the bookkeeping."""
+        if error is not None:
+            log.error("internal error fusing the ISM from %s: %r", ism.key, error)
+            self.rejections.reject("internal_error",
+                                   f"{ism.key}: {type(error).__name__}: {error}")
+            return
+        try:
+            self.bookkeeping(ism, touched)
+        except Exception as exc:
+            log.exception("internal error after fusing the ISM from %s", ism.key)
+            self.rejections.reject("internal_error", f"{ism.key}: {type(exc).__name__}: {exc}")
+            return
+        self.stats.fused()
+        self.stats.latency("fuse", time.perf_counter() - started)
 
     def bookkeeping(self, ism: PreparedIsm, touched: list[TileIndex]) -> None:
         x, y = ism.geometry.centre()

@@ -14,10 +14,10 @@ import numpy as np
 import zenoh
 
 from sogm_service.core.geodesy import LocalTangentPlane
+from sogm_service.core.tiles import TiledMap
 from sogm_service.core.tiletypes import TileIndex
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
-from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.stats import Stats
 from sogm_service.store.format import Expectation, tile_from_bytes, tile_header, tile_to_bytes
 from sogm_service.wire.errors import TileFormatError
@@ -29,11 +29,11 @@ log = logging.getLogger(__name__)
 class Replication:
     """Serves this server's tiles and copies a peer's on start."""
 
-    def __init__(self, config: ServiceConfig, shared: SharedMap, tiles: Checkpointer,
+    def __init__(self, config: ServiceConfig, tiled: TiledMap, tiles: Checkpointer,
                  stats: Stats) -> None:
         self.config = config
         self.keys = config.keys
-        self.shared = shared
+        self.tiled = tiled
         self.tiles = tiles
         self.stats = stats
         m = config.map
@@ -42,8 +42,7 @@ class Replication:
 
     def on_tiles(self, q: zenoh.Query) -> None:
         """One reply per requested tile, keyed ``.../tiles/<i>/<j>``, in the store format."""
-        with self.shared.locked() as tiled:
-            indices = sorted(tiled.known_tiles())
+        indices = sorted(self.tiled.known_tiles())
         selector = zenoh.KeyExpr(str(q.key_expr))
         for i, j in indices:
             tile_key = zenoh.KeyExpr(self.keys.tile(i, j))
@@ -56,16 +55,13 @@ class Replication:
 
     def tile_bytes(self, index: TileIndex) -> bytes | None:
         """A tile as file bytes: the live one if resident, else the stored file."""
-        with self.shared.locked() as tiled:
-            tile = tiled.tiles.get(index)
-            if tile is not None:
-                names, data = tiled.tile_layers(tile)
-                data, stamp = data.copy(), tile.stamp
-        if tile is None:
+        snap = self.tiled.snapshot(index)
+        if snap is None:
             store = self.tiles.store
             return store.read_bytes(*index) if store is not None else None
-        header = tile_header(self.expect, index[0], index[1], names, stamp, self._plane)
-        return tile_to_bytes(header, data)
+        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
+                             self._plane)
+        return tile_to_bytes(header, snap.data)
 
     def replicate(self, session: zenoh.Session, timeout: float = 30.0) -> int:
         """Copy every tile a live server of this map offers on ``tiles/**``.
@@ -92,9 +88,8 @@ class Replication:
                 log.warning("replication: rejected %s: %s", reply.ok.key_expr, exc.reason)
                 continue
             h = tile.header
-            with self.shared.locked() as tiled:
-                tiled.insert_tile(h.index, list(h.layers), np.array(tile.data), h.stamp,
-                                  saved=False)
+            self.tiled.insert_tile(h.index, list(h.layers), np.array(tile.data), h.stamp,
+                                   saved=False)
             copied += 1
         self.stats.count("replica_tiles_copied", copied)
         log.info("replication: copied %d tiles from a live server", copied)

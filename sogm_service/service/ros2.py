@@ -18,10 +18,10 @@ from typing import Any
 import zenoh
 
 from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region
+from sogm_service.core.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fleet import FleetTracker
 from sogm_service.service.ingest import IngestQueue
-from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.pipeline import IsmItem
 from sogm_service.service.ros2_bridge import Ros2Bridge, Ros2BridgeSettings
 from sogm_service.service.stats import Rejections, Stats
@@ -44,11 +44,11 @@ def bridge_settings(config: ServiceConfig) -> Ros2BridgeSettings:
 class Ros2Link:
     """The bridge, its callbacks into the server, and the map publication thread."""
 
-    def __init__(self, config: ServiceConfig, session: zenoh.Session, shared: SharedMap,
+    def __init__(self, config: ServiceConfig, session: zenoh.Session, tiled: TiledMap,
                  queue: IngestQueue, fleet: FleetTracker, stats: Stats,
                  rejections: Rejections) -> None:
         self.config = config
-        self.shared = shared
+        self.tiled = tiled
         self.queue = queue
         self.fleet = fleet
         self.stats = stats
@@ -81,17 +81,16 @@ class Ros2Link:
             self.stats.count(f"ros2_{what}_rejected_{code}")
 
     def snapshot(self) -> MapSnapshot:
-        """The layers and the fused map over the publication region: sampled under the map's
-        lock, pooled and converted by :func:`~sogm_service.adapters.ros2.views.map_snapshot`."""
+        """The layers and the fused map over the publication region, sampled, pooled and
+        converted by :func:`~sogm_service.adapters.ros2.views.map_snapshot`."""
         r = self.config.ros2
-        with self.shared.locked() as tiled:
-            window = publish_region(tiled, self.fleet.positions(), mode=r.region,
-                                    radius_m=r.region_radius_m, max_cells=r.max_publish_cells)
-            if window is None:
-                return MapSnapshot()
-            return map_snapshot(tiled, window, stamp=time.time(), layers=r.layers,
-                                fused_layers=r.fused_layers, method=r.fused_method,
-                                publish_layers=r.publish_layers)
+        window = publish_region(self.tiled, self.fleet.positions(), mode=r.region,
+                                radius_m=r.region_radius_m, max_cells=r.max_publish_cells)
+        if window is None:
+            return MapSnapshot()
+        return map_snapshot(self.tiled, window, stamp=time.time(), layers=r.layers,
+                            fused_layers=r.fused_layers, method=r.fused_method,
+                            publish_layers=r.publish_layers)
 
     def _publish_loop(self) -> None:
         while not self._stop.wait(self.config.ros2.publish_period_s):

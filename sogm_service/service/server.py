@@ -6,9 +6,13 @@ Threads and why (DESIGN.md sections 2-4):
   (:mod:`sogm_service.service.ingest`), so the network side is never slowed by decoding or
   fusion; one worker runs the :class:`~sogm_service.service.pipeline.IngestPipeline` in
   arrival order.
-* Queries run on Zenoh's query threads: request -> sampling under the map's lock -> reply
-  (:mod:`sogm_service.service.queries`), so they wait at most for the one ISM being fused,
-  never for the backlog.
+* Fuse workers (:mod:`sogm_service.service.fusers`) fuse each ISM over disjoint tiles, so
+  ingestion uses several cores and the map stays the same for any number of them.
+* Queries run on Zenoh's query threads: request -> sampling -> reply
+  (:mod:`sogm_service.service.queries`).  They take no map-wide lock: a tile is locked only
+  while its block is copied or one ISM's patch is added to it
+  (:mod:`sogm_service.core.tiles`), so a query never waits for the ingestion backlog, nor
+  even for one whole ISM.
 * Checkpoints, eviction (:mod:`~sogm_service.service.checkpoints`), the fleet's tiles
   (:mod:`~sogm_service.service.fleet`) and whole-tile replication
   (:mod:`~sogm_service.service.replication`) are parts this class wires to the session.
@@ -30,8 +34,8 @@ from sogm_service.service import queries
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fleet import FleetTracker
+from sogm_service.service.fusers import FuseWorkers
 from sogm_service.service.ingest import IngestQueue, IngestWorker
-from sogm_service.service.mapstate import SharedMap
 from sogm_service.service.matcher import Matcher
 from sogm_service.service.pipeline import IngestPipeline, IsmItem, check_robot
 from sogm_service.service.replication import Replication
@@ -66,13 +70,13 @@ class MapServer:
         lattice = TileLattice(config.map.resolution, config.map.tile_size)
         self.fleet = FleetTracker(config, lattice, self.stats)
         self.tiles = Checkpointer(config, self.stats, keep=self.fleet.regions_of_interest)
-        self._tiled = TiledMap(config.map.name, config.map.frame, lattice, config.map.eps0,
-                               loader=self.tiles.load)
-        self.map = SharedMap(self._tiled)
+        self.map = TiledMap(config.map.name, config.map.frame, lattice, config.map.eps0,
+                            loader=self.tiles.load)
         self.matcher = Matcher(config, self.stats)
         self.replication = Replication(config, self.map, self.tiles, self.stats)
+        self.fusers = FuseWorkers(self.map, config.limits.fuse_workers)
         self.pipeline = IngestPipeline(config, self.map, self.stats, self.matcher, self.fleet,
-                                       self.tiles)
+                                       self.tiles, self.fusers)
         self._queue = IngestQueue(config.limits.queue_size, config.limits.queue_policy,
                                   self.stats)
         self._worker = IngestWorker(self._queue, self.pipeline.handle, self.stats)
@@ -90,7 +94,7 @@ class MapServer:
         return self._session
 
     def start(self) -> MapServer:
-        self.tiles.attach(self.map, self._tiled)
+        self.tiles.attach(self.map)
         if self._session is None:
             self._session = open_session(self.config.zenoh)
         self.server_id = str(self._session.info.zid())
@@ -150,6 +154,7 @@ class MapServer:
         self._declared.clear()
         self._events = None
         self._worker.stop(timeout)
+        self.fusers.close(timeout)
         self.tiles.close(timeout)
         if self._owns_session and self._session is not None:
             self._session.close()
@@ -230,39 +235,36 @@ class MapServer:
 
     def _on_submap(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SubmapRequest, *self.params(q))
-        with self.map.locked() as tiled:
-            return queries.submap(tiled, req, self.config.limits.max_query_cells, time.time())
+        return queries.submap(self.map, req, self.config.limits.max_query_cells, time.time())
 
     def _on_fused(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(FusedRequest, *self.params(q))
-        with self.map.locked() as tiled:
-            return queries.fused(tiled, req, self.config.limits.max_query_cells, time.time())
+        return queries.fused(self.map, req, self.config.limits.max_query_cells, time.time())
 
     def _on_supercells(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SupercellRequest, *self.params(q))
-        with self.map.locked() as tiled:
-            window, layers, stack = queries.supercell_input(
-                tiled, req, self.config.limits.max_query_cells)
-        return queries.supercells(self._tiled, req, window, layers, stack, time.time())
+        window, layers, stack = queries.supercell_input(
+            self.map, req, self.config.limits.max_query_cells)
+        return queries.supercells(self.map, req, window, layers, stack, time.time())
 
     def info(self) -> InfoReply:
-        with self.map.locked() as tiled:
-            return InfoReply(
-                map=tiled.name, frame=tiled.frame, server_id=self.server_id,
-                resolution=tiled.lattice.resolution, tile_size=tiled.tile_size,
-                eps0=tiled.eps0, logodds_scale=1000.0, layers=list(tiled.layers),
-                tiles=sorted(tiled.known_tiles()), bounds=tiled.bounds(),
-                datum=self.config.map.datum)
+        tiled = self.map
+        return InfoReply(
+            map=tiled.name, frame=tiled.frame, server_id=self.server_id,
+            resolution=tiled.lattice.resolution, tile_size=tiled.tile_size,
+            eps0=tiled.eps0, logodds_scale=1000.0, layers=list(tiled.layers),
+            tiles=sorted(tiled.known_tiles()), bounds=tiled.bounds(),
+            datum=self.config.map.datum)
 
     def stats_reply(self) -> StatsReply:
         counters, rejected = self.stats.snapshot()
-        with self.map.locked() as tiled:
-            extra: dict[str, Any] = {
-                "layers": len(tiled.layers),
-                "tiles_resident": len(tiled.tiles),
-                "tiles_known": len(tiled.known_tiles()),
-                "resident_mb": round(tiled.resident_bytes() / 1e6, 3),
-            }
+        extra: dict[str, Any] = {
+            "layers": len(self.map.layers),
+            "tiles_resident": len(self.map.tiles),
+            "tiles_known": len(self.map.known_tiles()),
+            "resident_mb": round(self.map.resident_bytes() / 1e6, 3),
+            "fuse_workers": self.fusers.workers,
+        }
         extra["robots"] = self.fleet.robot_count()
         extra.update(self.tiles.stats_extra())
         extra.update(self.matcher.stats_extra())

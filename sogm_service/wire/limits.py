@@ -28,6 +28,10 @@ MAX_QUERY_CELLS: Final = 4096 * 4096
 QUEUE_SIZE: Final = 64
 """ISMs waiting between the Zenoh callbacks and the ingestion worker."""
 
+FUSE_WORKERS: Final = 2
+"""Threads that fuse ISMs, each over its own share of the tiles (results are the same for any
+number); more than the machine's cores buys nothing."""
+
 LAYER_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-./]{1,128}$"
 """What a layer name may be: up to 128 characters of ``[A-Za-z0-9_-./]``."""
 
