@@ -30,15 +30,22 @@ def registry() -> list[Benchmark]:
             return result
         return run
 
+    def mixed(quick: bool) -> Row:
+        from sogm_service.bench.fleet import mixed_fleet
+
+        return mixed_fleet(quick)
+
     return [
-        Benchmark("fuse_aligned", "aligned 1024x1024 prob_u8 ISM vs one numpy.add",
+        Benchmark("fuse_aligned", "aligned 1024x1024 prob_u8 ISM vs the streaming floor",
                   compute.fuse_aligned),
-        Benchmark("fuse_rotated", "512x512 ISM at 30 deg and 1.5x res vs the same aligned",
+        Benchmark("fuse_rotated", "512x512 ISM at 30 deg and 1.5x res vs one footprint warp",
                   compute.fuse_rotated),
         Benchmark("submap", "256x256x4 rotated biodds submap over Zenoh vs a raw get",
                   z("submap")),  # type: ignore[arg-type]
-        Benchmark("ingest", "256x256 ISMs publisher -> server vs raw puts to a counter",
+        Benchmark("ingest", "256x256 ISMs publisher -> server vs one worker in process x cores",
                   z("ingestion")),  # type: ignore[arg-type]
+        Benchmark("mixed_fleet", "sub-map p50/p99 while a fleet streams ISMs vs idle",
+                  mixed),
         Benchmark("sevds", "SEVDS 256x256x3 vs OpenCV SEEDS", compute.sevds),
         Benchmark("memory", "100 m x 100 m at 5 cm, 8 layers: peak RSS vs raw bytes",
                   z("memory")),  # type: ignore[arg-type]

@@ -9,6 +9,9 @@ signal handlers before opening it, and closes it on SIGTERM or end of stdin.
   every ``--count`` samples (the raw baseline of the ingestion benchmark).
 * ``publisher``: for every ``go`` line on stdin puts the ``--count`` ISM payloads (prepared
   before timing, congestion control BLOCK) and prints ``sent <t_first> <t_last>``.
+* ``paced``: a fleet at a steady rate: for every ``RATE SECONDS`` line on stdin puts ISMs at
+  ``RATE`` per second for ``SECONDS`` (``--robots`` x 4 keys in turn, BLOCK) and prints
+  ``sent <count> <t_first> <t_last>``.
 """
 
 from __future__ import annotations
@@ -109,6 +112,32 @@ def run_publisher(args: argparse.Namespace, stop: threading.Event) -> None:
         session.close()
 
 
+def run_paced(args: argparse.Namespace, stop: threading.Event) -> None:
+    payloads = ism_payloads(64, args.size)
+    keys = [f"ism/robot{r}/sensor/class{c}" for r in range(args.robots) for c in range(4)]
+    session = open_session(loopback_settings(connect=args.connect, mode="client"))
+    try:
+        pubs = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                for k in keys]
+        _say("ready")
+        for line in sys.stdin:
+            if stop.is_set() or not line.strip():
+                break
+            rate, seconds = (float(v) for v in line.split())
+            n = int(rate * seconds)
+            t0 = time.time()
+            for k in range(n):  # ISM k is due at t0 + k / rate: a steady fleet, no bursts
+                delay = t0 + k / rate - time.time()
+                if delay > 0:
+                    time.sleep(delay)
+                pubs[k % len(pubs)].put(payloads[k % len(payloads)])
+            _say(f"sent {n} {t0:.6f} {time.time():.6f}")
+        for pub in pubs:
+            pub.undeclare()
+    finally:
+        session.close()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sogm_service.bench.procs")
     sub = p.add_subparsers(dest="role", required=True)
@@ -125,6 +154,10 @@ def build_parser() -> argparse.ArgumentParser:
     pb.add_argument("--key", required=True)
     pb.add_argument("--count", type=int, required=True)
     pb.add_argument("--size", type=int, default=256)
+    pc = sub.add_parser("paced")
+    pc.add_argument("--connect", required=True)
+    pc.add_argument("--robots", type=int, default=8)
+    pc.add_argument("--size", type=int, default=256)
     return p
 
 
@@ -132,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     stop = _stop_event()  # before any session: an early SIGTERM still closes cleanly
     roles: dict[str, Any] = {"queryable": run_queryable, "counter": run_counter,
-                             "publisher": run_publisher}
+                             "publisher": run_publisher, "paced": run_paced}
     roles[args.role](args, stop)
     return 0
 

@@ -96,7 +96,9 @@ class Proc:
 def _config(directory: Path, listen: str, queue_size: int = 64) -> Path:
     path = directory / "server.toml"
     path.write_text(f'[map]\nresolution = {MAP_RES}\n\n[zenoh]\nlisten = ["{listen}"]\n\n'
-                    f'[limits]\nqueue_size = {queue_size}\n', encoding="utf-8")
+                    f'[limits]\nqueue_size = {queue_size}\n'
+                    f'fuse_workers = {os.environ.get("SOGM_BENCH_WORKERS", "2")}\n',
+                    encoding="utf-8")
     return path
 
 
