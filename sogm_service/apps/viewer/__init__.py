@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 DEFAULT_HTTP = "127.0.0.1:8080"
+_WS = "websockets-sansio"  # uvicorn's newer implementation on the websockets library
 _MISSING = ("the viewer needs starlette, uvicorn and websockets: "
             "pip install 'sogm-service[viewer]'")
 
@@ -111,6 +112,7 @@ def _url(host: str, sock: socket.socket) -> str:
 
 def _server(args: argparse.Namespace, host: str) -> Any:
     import uvicorn
+    from uvicorn.config import WS_PROTOCOLS
 
     from sogm_service.apps.viewer.app import create_app
     from sogm_service.apps.viewer.hub import HubSettings, MapHub
@@ -122,8 +124,8 @@ def _server(args: argparse.Namespace, host: str) -> Any:
     app = create_app(hub, refresh_s=args.refresh,
                      allowed_hosts=allowed_hosts(host, args.allow_host))
     config = uvicorn.Config(app, log_level="debug" if args.verbose else "warning",
-                            ws="websockets", ws_max_size=64 * 1024, lifespan="on",
-                            timeout_graceful_shutdown=3)
+                            ws=_WS if _WS in WS_PROTOCOLS else "websockets",
+                            ws_max_size=64 * 1024, lifespan="on", timeout_graceful_shutdown=3)
     return uvicorn.Server(config)
 
 

@@ -60,6 +60,7 @@ class HubSettings:
     ism_key: str | None = "ism/**"
     poll_s: float = 1.0
     query_timeout_s: float = 2.0
+    supercells_timeout_s: float = 30.0  # the first SEVDS call of a server loads its kernels
     reopen_after: int = 10
     cache_tiles: int = 1024
 
@@ -388,9 +389,11 @@ class MapHub:
             return {"type": "supercells", "nodes": [], "edges": [], "error": "not connected"}
         w, h = xmax - xmin, ymax - ymin
         res = max(info.resolution, max(w, h) / max_side)
+        patient = MapClient(client.session, client.map_name, client.prefix,
+                            self.settings.supercells_timeout_s)  # same session, longer wait
         try:
-            reply = client.supercells(x=(xmin + xmax) / 2, y=(ymin + ymax) / 2, width=w,
-                                      height=h, resolution=res)
+            reply = patient.supercells(x=(xmin + xmax) / 2, y=(ymin + ymax) / 2, width=w,
+                                       height=h, resolution=res)
         except ClientError as exc:
             return {"type": "supercells", "nodes": [], "edges": [], "error": str(exc)}
         order = {name: k for k, name in enumerate(info.layers)}

@@ -94,6 +94,7 @@
         onStatus(m.status);
         if (m.info) onInfo(m.info);
         m.robots.forEach(onPose);
+        renderRobots();
         state.events = [];
         $("events").textContent = "";
         m.events.forEach((e) => onEvent(e, false));
