@@ -311,6 +311,24 @@ def test_page_and_socket_answer_only_their_own_host_and_origin(stack: Stack) -> 
         assert msg["signature"] == "class"
 
 
+def test_start_viewer_serves_in_a_thread_for_the_demo(stack: Stack) -> None:
+    from sogm_service.apps.viewer import start_viewer
+
+    running = start_viewer(["--connect", stack.endpoint, "--http", "127.0.0.1:0",
+                            "--poll", "0.2"])
+    try:
+        assert running.url.startswith("http://127.0.0.1:") and not running.url.endswith(":0/")
+
+        def connected() -> bool:
+            with urllib.request.urlopen(running.url + "api/state", timeout=5) as r:
+                return bool(json.loads(r.read())["connected"])
+
+        assert wait_until(connected, 20)
+    finally:
+        running.stop()
+    assert not running.thread.is_alive()
+
+
 # -- the page in a real browser ----------------------------------------------------------------
 needs_browser = pytest.mark.skipif(
     not (CHROMIUM.exists() and CHROMEDRIVER.exists()),
@@ -447,6 +465,16 @@ def test_a_pose_published_after_load_moves_the_robot_marker(stack: Stack, browse
 
 
 @needs_browser
+def test_ism_footprints_reach_the_page(stack: Stack, browser: Any) -> None:
+    before = js(browser, "return window.sogmViewer.state.footprintsReceived;")
+    # p = 0.5 everywhere: a footprint that changes no cell and adds no layer
+    stack.client.publish_ism("ism/r1/laser/obstacle", np.full((10, 10), 0.5, np.float32),
+                             resolution=RES, origin=Pose2D(2.0, 2.0, 0.5))
+    wait_for(browser, lambda d: js(d, "return window.sogmViewer.state.footprintsReceived;")
+             > before, what="no footprint reached the page")
+
+
+@needs_browser
 def test_switching_to_the_fused_view_changes_the_picture(stack: Stack, browser: Any) -> None:
     js(browser, "window.sogmViewer.setView(3.0, 2.0, 40.0);")
     js(browser, f"window.sogmViewer.setMode('layer', {{layer: '{OBSTACLE}'}});")
@@ -520,7 +548,8 @@ def test_cursor_shows_map_coordinates_and_each_layers_probability(stack: Stack,
     assert "(map)" in browser.find_element("id", "cursor-xy").text
     wait_for(browser, lambda d: js(d, "const p = window.sogmViewer.state.probe; "
              "return p && Math.abs(p.x - 1.525) < 0.05 && p.values.length === 2;"),
-             what="no probe answer for the cursor")
+             what="no probe answer for the cursor: " + json.dumps(js(browser,
+                 "return [window.sogmViewer.state.probe, window.sogmViewer.state.socket]")))
     values = {v["layer"]: v for v in js(browser, "return window.sogmViewer.state.probe.values")}
     assert values[OBSTACLE]["known"] and values[OBSTACLE]["p"] == pytest.approx(0.9, abs=2e-3)
     assert not values[CHAIR]["known"]  # the chair ISM never covered x = 1.5

@@ -218,7 +218,10 @@ class Connection:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self.wake.wait(), self.refresh_s)
             self.wake.clear()
-            await self.refresh()
+            try:
+                await self.refresh()
+            except Exception:  # a bug must not close the page's connection
+                log.exception("viewer: refresh failed")
 
     async def refresh(self) -> None:
         view, lattice = self.view, self.hub.lattice()

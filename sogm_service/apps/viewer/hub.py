@@ -372,7 +372,7 @@ class MapHub:
         try:
             sub = client.submap(x=x, y=y, width=res, height=res, resolution=res,
                                 interp="nearest", encoding="logodds_i16")
-        except ClientError as exc:
+        except Exception as exc:  # ClientError, or a session closed while reconnecting
             return {"type": "probe", "x": x, "y": y, "values": [], "error": str(exc)}
         cells = sub.data.reshape(len(sub.layers), -1)[:, 0].astype(np.int64)
         probs = logodds.fixed_to_prob(cells)
@@ -394,7 +394,7 @@ class MapHub:
         try:
             reply = patient.supercells(x=(xmin + xmax) / 2, y=(ymin + ymax) / 2, width=w,
                                        height=h, resolution=res)
-        except ClientError as exc:
+        except Exception as exc:  # ClientError, or a session closed while reconnecting
             return {"type": "supercells", "nodes": [], "edges": [], "error": str(exc)}
         order = {name: k for k, name in enumerate(info.layers)}
         nodes, edges = [], []

@@ -11,7 +11,7 @@
   const mapCtx = mapCanvas.getContext("2d", { willReadFrequently: true });
   const ovCtx = overlay.getContext("2d");
   const BACKGROUND = "#262a30";
-  const FOOTPRINT_S = 2.5;
+  const FOOTPRINT_S = 1.5;
   const EVENT_FLASH_S = 3.0;
   const MAX_TILES = 600;
   const HISTORY = 120;
@@ -25,12 +25,13 @@
     robots: {},                  // name -> pose message
     markers: {},                 // name -> {x, y, yaw, sx, sy} as last drawn (css px)
     events: [],                  // tile events, newest last
-    footprints: [],              // {corners, robot, t}
+    footprints: new Map(),       // ISM key -> {corners, robot, t}: the latest of each key
     supercells: null,
     stats: [],
     probe: null,
     tilesReceived: 0,
     tilesDropped: 0,
+    footprintsReceived: 0,
     refreshes: 0,
     lastRefresh: null,
     errors: [],
@@ -71,7 +72,13 @@
     state.socket = "connecting";
     ws = new WebSocket(url.href);
     ws.binaryType = "arraybuffer";
-    ws.onopen = () => { retries = 0; state.socket = "open"; updateStatus(); sendView(true); };
+    ws.onopen = () => {
+      retries = 0;
+      probeInFlight = false;          // a probe lost with the old socket is not waited for
+      state.socket = "open";
+      updateStatus();
+      sendView(true);
+    };
     ws.onclose = () => {
       state.socket = "closed";
       updateStatus();
@@ -226,10 +233,16 @@
   }
 
   function onFootprints(list) {
+    state.footprintsReceived += list.length;
     if (!$("show-footprints").checked) return;
     const now = performance.now() / 1000;
-    for (const f of list) state.footprints.push({ corners: f.corners, robot: f.robot, t: now });
-    if (state.footprints.length > 200) state.footprints.splice(0, state.footprints.length - 200);
+    for (const f of list) {
+      state.footprints.delete(f.key);   // keep insertion order = age
+      state.footprints.set(f.key, { corners: f.corners, robot: f.robot, t: now });
+    }
+    while (state.footprints.size > 200) {
+      state.footprints.delete(state.footprints.keys().next().value);
+    }
     scheduleDraw();
   }
 
@@ -417,7 +430,7 @@
   $("method").addEventListener("change", () => sendView(true));
   $("fit").addEventListener("click", () => fit(true));
   $("show-lattice").addEventListener("change", scheduleDraw);
-  $("show-footprints").addEventListener("change", () => { state.footprints = []; scheduleDraw(); });
+  $("show-footprints").addEventListener("change", () => { state.footprints.clear(); scheduleDraw(); });
   $("show-supercells").addEventListener("change", () => {
     state.supercells = null;
     askSupercells(true);
@@ -495,13 +508,16 @@
     }
     // ISM footprints fading in and out
     if ($("show-footprints").checked) {
-      state.footprints = state.footprints.filter((f) => now - f.t < FOOTPRINT_S);
-      for (const f of state.footprints) {
+      for (const [k, f] of state.footprints) {
+        if (now - f.t >= FOOTPRINT_S) state.footprints.delete(k);
+      }
+      for (const f of state.footprints.values()) {
         const age = (now - f.t) / FOOTPRINT_S;
         const a = age < 0.2 ? age / 0.2 : 1 - (age - 0.2) / 0.8;
-        ctx.strokeStyle = `rgba(129, 212, 250, ${0.8 * a})`;
-        ctx.fillStyle = `rgba(129, 212, 250, ${0.08 * a})`;
-        ctx.lineWidth = 1;
+        ctx.strokeStyle = `rgba(255, 255, 255, ${0.9 * a})`;
+        ctx.fillStyle = `rgba(255, 255, 255, ${0.08 * a})`;
+        ctx.lineWidth = 1.5;
+        ctx.setLineDash([5, 3]);
         ctx.beginPath();
         f.corners.forEach(([x, y], k) => {
           const [sx, sy] = worldToScreen(x, y);
@@ -511,7 +527,8 @@
         ctx.fill();
         ctx.stroke();
       }
-      if (state.footprints.length) animating = true;
+      ctx.setLineDash([]);
+      if (state.footprints.size) animating = true;
     }
     if ($("show-supercells").checked && state.supercells) drawSupercells(ctx);
     drawRobots(ctx);
