@@ -158,6 +158,29 @@ def test_ism_footprint_from_a_header_built_by_msgpack_alone() -> None:
         assert ism_footprint("ism/x", bad) is None
 
 
+def test_cursor_latitude_longitude_follow_the_maps_datum() -> None:
+    from sogm_service.apps.viewer.hub import HubSettings, MapHub
+    from sogm_service.core.geodesy import LocalTangentPlane
+    from sogm_service.wire.messages import GeodeticFix, InfoReply
+
+    datum = GeodeticFix(latitude=48.2, longitude=16.37, altitude=0.0)
+    info = InfoReply(map="m", frame="map", server_id="s", resolution=RES, tile_size=256,
+                     eps0=0.001, logodds_scale=1000.0, layers=["a", "b"], tiles=[(0, 0)],
+                     bounds=(0.0, 0.0, 12.8, 12.8), datum=datum)
+    msg = MapHub(HubSettings())._info_message(info)
+    geo = msg["geo"]
+    truth = LocalTangentPlane(datum).to_geodetic(130.0, -75.0)
+    # what the page computes from the message for a cursor at (130, -75) m
+    assert geo["latitude"] - 75.0 * geo["deg_lat_per_m"] == pytest.approx(truth.latitude, abs=1e-9)
+    assert geo["longitude"] + 130.0 * geo["deg_lon_per_m"] == pytest.approx(truth.longitude,
+                                                                          abs=1e-9)
+    # the legend's colours are the tiles' (render.class_colors, BGR there)
+    from sogm_service.apps.render import class_colors
+
+    assert msg["palette"] == ["#{:02x}{:02x}{:02x}".format(*c[::-1]) for c in class_colors(2)]
+    assert msg["unknown"] == "#466e96"
+
+
 # -- the viewer process and a map server ---------------------------------------------------------
 @dataclass
 class Stack:
@@ -350,6 +373,7 @@ def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                  "--no-first-run", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage",
+                 "--disable-smooth-scrolling",
                  f"--user-data-dir={profile}", "--window-size=1200,800",
                  "--force-device-scale-factor=1"):
         opts.add_argument(flag)
@@ -418,6 +442,13 @@ def test_page_loads_live_with_no_console_errors(stack: Stack, browser: Any,
     assert OBSTACLE in legend and CHAIR in legend and "unknown" in legend
     wait_for(browser, lambda d: js(d, "return window.sogmViewer.state.tilesReceived") > 0,
              what="no tile reached the page")
+    # the stats charts: samples arrive and the ISM rate chart has a line drawn on it
+    wait_for(browser, lambda d: js(d, "return window.sogmViewer.state.stats.some("
+             "s => s.isms_per_s > 0);"), what="no stats sample with an ISM rate")
+    drawn = js(browser, "const c = document.getElementById('chart-isms'); "
+               "const a = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; "
+               "let n = 0; for (let k = 3; k < a.length; k += 4) if (a[k] > 0) n++; return n;")
+    assert drawn > 50
     assert read_console(browser, console) == []
 
 
@@ -448,6 +479,29 @@ def test_canvas_shows_the_published_layer_in_its_colours(stack: Stack, browser: 
 
 
 @needs_browser
+def test_drag_pans_wheel_zooms_and_the_scale_bar_follows(stack: Stack, browser: Any) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.actions.wheel_input import ScrollOrigin
+
+    js(browser, "window.sogmViewer.setView(3.0, 2.0, 40.0);")
+    wait_for(browser, lambda d: d.find_element("id", "scale-label").text == "2 m")
+    width = browser.find_element("id", "scale-bar").value_of_css_property("width")
+    assert width == "80px"  # 2 m at 40 px/m
+    overlay = browser.find_element("id", "overlay")
+    ActionChains(browser).move_to_element(overlay).click_and_hold().move_by_offset(80, -40) \
+        .release().perform()
+    view = js(browser, "return window.sogmViewer.view;")
+    assert view["cx"] == pytest.approx(3.0 - 80 / 40, abs=0.05)  # dragged right: map moves right
+    assert view["cy"] == pytest.approx(2.0 - 40 / 40, abs=0.05)  # dragged up: map moves up
+    ActionChains(browser).scroll_from_origin(ScrollOrigin.from_element(overlay), 0, 1500).perform()
+    wait_for(browser, lambda d: js(d, "return window.sogmViewer.view.z;") < 10,
+             what="the wheel did not zoom out")
+    wait_for(browser, lambda d: js(d, "const r = window.sogmViewer.state.lastRefresh; "
+             "return r && r.level;") >= 2, what="no refresh at a coarser level after zooming")
+    assert browser.find_element("id", "scale-label").text in ("5 m", "10 m", "20 m")
+
+
+@needs_browser
 def test_a_pose_published_after_load_moves_the_robot_marker(stack: Stack, browser: Any) -> None:
     js(browser, "window.sogmViewer.setView(3.0, 2.0, 40.0);")
     wait_for(browser, lambda d: (js(d, "return window.sogmViewer.state.markers.r1") or {})
@@ -458,9 +512,10 @@ def test_a_pose_published_after_load_moves_the_robot_marker(stack: Stack, browse
              .get("x") == 4.5, what="the marker never moved")
     after = json.loads(browser.find_element("id", "overlay").get_attribute("data-robots"))["r1"]
     assert after["y"] == 3.0 and after["yaw"] == pytest.approx(1.2)
-    # drawn where the map point is: 1.5 m right and 1 m up at 40 px/m
+    # drawn where the map point is: 2.5 m right and 1 m up at 40 px/m
     assert after["sx"] - before["sx"] == pytest.approx(2.5 * 40, abs=0.01)
     assert before["sy"] - after["sy"] == pytest.approx(1.0 * 40, abs=0.01)
+    assert js(browser, "return window.sogmViewer.view.z;") == 40.0
     assert "r1: 4.50, 3.00 m" in browser.find_element("id", "robots").text
 
 
