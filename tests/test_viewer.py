@@ -232,6 +232,9 @@ def _start_viewer(tmp: Path, endpoint: str) -> tuple[subprocess.Popen[bytes], Pa
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    for module in ("starlette", "uvicorn", "websockets"):
+        pytest.importorskip(module, reason="the viewer needs starlette, uvicorn, websockets "
+                                           "(the [viewer] extra)")
     tmp = tmp_path_factory.mktemp("viewer")
     servers = [start_server(tmp)]
     viewer: subprocess.Popen[bytes] | None = None
