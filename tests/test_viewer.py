@@ -121,6 +121,17 @@ def test_outbox_never_grows_and_drops_the_oldest_droppable_message() -> None:
     assert asyncio.run(box.get()) is None
 
 
+def test_a_message_that_cannot_be_json_is_dropped_not_raised() -> None:
+    from sogm_service.apps.viewer.app import Connection
+    from sogm_service.apps.viewer.hub import HubSettings, MapHub
+
+    conn = Connection(None, MapHub(HubSettings()), None, 1.0, 8)  # type: ignore[arg-type]
+    conn.send({"type": "stats", "isms_per_s": float("nan")})  # a server's NaN must not kill
+    assert len(conn.outbox) == 0  # the ticker that pushes to every page
+    conn.send({"type": "stats", "isms_per_s": 1.0})
+    assert len(conn.outbox) == 1
+
+
 def test_http_address_parsing_and_the_loopback_rule() -> None:
     assert parse_http("127.0.0.1:8080") == ("127.0.0.1", 8080)
     assert parse_http("[::1]:0") == ("::1", 0)

@@ -107,7 +107,12 @@ class Connection:
 
     # -- plumbing -------------------------------------------------------------------------
     def send(self, obj: dict[str, Any], droppable: bool = True) -> None:
-        self.outbox.put(Message(_json(obj), droppable=droppable, kind=str(obj.get("type"))))
+        try:
+            text = _json(obj)
+        except (TypeError, ValueError):  # NaN or an unexpected type: never kill the loop
+            log.warning("viewer: dropped an unencodable %s message", obj.get("type"))
+            return
+        self.outbox.put(Message(text, droppable=droppable, kind=str(obj.get("type"))))
 
     def push(self, updates: Updates) -> None:
         """Hub updates for this browser (called by the app's ticker)."""
@@ -299,7 +304,10 @@ def create_app(hub: MapHub, *, refresh_s: float = 1.0, allowed_hosts: list[str] 
             updates = hub.drain()
             if updates:
                 for conn in list(connections):
-                    conn.push(updates)
+                    try:
+                        conn.push(updates)
+                    except Exception:  # one page's trouble is not every page's
+                        log.exception("viewer: update of a page failed")
 
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
