@@ -134,6 +134,7 @@ class MapHub:
         self._last_rejected: dict[str, int] = {}
         self.queries = 0
         self.query_failures = 0
+        self._warned = False
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self) -> MapHub:
@@ -226,9 +227,18 @@ class MapHub:
 
     def _set_status(self, connected: bool, error: str | None) -> None:
         with self._lock:
-            if connected != self.connected or error != self.error:
-                self.connected, self.error = connected, error
-                self._pending.status = self._status_message()
+            if connected == self.connected and error == self.error:
+                return
+            was = self.connected
+            self.connected, self.error = connected, error
+            self._pending.status = self._status_message()
+        if connected and not was:
+            log.info("viewer: map %r answers at %s", self.settings.map_name,
+                     self.settings.endpoint)
+            self._warned = False
+        elif not connected and not self._warned:  # once per outage, not once per poll
+            log.warning("viewer: %s", error)
+            self._warned = True
 
     def _status_message(self) -> dict[str, Any]:
         return {"type": "status", "connected": self.connected, "error": self.error,
