@@ -243,6 +243,29 @@ class MapClient:
         msg = PoseMessage(robot=robot, frame=frame, stamp=stamp, x=x, y=y, yaw=yaw, fix=fix)
         self._publisher(pose_key(key_prefix, robot)).put(codec.encode(msg))
 
+    # -- watching the fleet (viewer, dashboards) -----------------------------------------
+    def subscribe_poses(self, callback: Callable[[str, PoseMessage], None],
+                        key_expr: str = "pose/**") -> zenoh.Subscriber:
+        """Call ``callback(robot, pose)`` with every valid robot pose on ``key_expr`` (the
+        robot is the message's, else the key's last part); invalid payloads are skipped."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                msg = codec.decode(PoseMessage, sample.payload.to_bytes())
+            except codec.DecodeError:
+                return
+            callback(msg.robot or str(sample.key_expr).rsplit("/", 1)[-1], msg)
+        return self.session.declare_subscriber(key_expr, on_sample)
+
+    def subscribe_ism_footprints(self, callback: Callable[[IsmFootprint], None],
+                                 key_expr: str = "ism/**") -> zenoh.Subscriber:
+        """Call ``callback`` with where each ISM on ``key_expr`` lies (its header only: the
+        cells are neither validated nor kept); payloads without a usable header are skipped."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            footprint = ism_footprint(str(sample.key_expr), sample.payload.to_bytes())
+            if footprint is not None:
+                callback(footprint)
+        return self.session.declare_subscriber(key_expr, on_sample)
+
 
 def _encoding_of(arr: npt.NDArray[Any]) -> str:
     if arr.dtype == np.uint8:
@@ -268,3 +291,47 @@ def _service_error(payload: bytes) -> ServiceError:
     except DecodeError:
         return ServiceError("unknown", payload[:200].decode("utf-8", "replace"))
     return ServiceError(err.code, err.message, err.parameter)
+
+
+@dataclass(frozen=True)
+class IsmFootprint:
+    """Where one ISM lies in its frame: the four corners of its grid (m), counter-clockwise
+    from the origin corner of cell (0, 0)."""
+
+    key: str
+    robot: str | None
+    layer: str | None
+    frame: str
+    stamp: float
+    corners: tuple[tuple[float, float], ...]
+
+
+def ism_footprint(key: str, payload: bytes) -> IsmFootprint | None:
+    """The footprint of an ISM payload from its header fields, or ``None`` when they are
+    missing or not finite (never raises)."""
+    try:
+        obj = codec.unpack(payload)
+    except codec.DecodeError:
+        return None
+    if not isinstance(obj, dict):
+        return None
+    origin = obj.get("origin") or {}
+    try:
+        res = float(obj["resolution"])
+        w, h = obj["width"], obj["height"]
+        x, y, yaw = (float(origin.get(k, 0.0)) for k in ("x", "y", "yaw"))
+        stamp = float(obj.get("stamp", 0.0))
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+    if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= 1 << 20
+            and 0 < h <= 1 << 20 and res > 0
+            and all(math.isfinite(v) for v in (res, x, y, yaw, stamp))):
+        return None
+    c, s = math.cos(yaw), math.sin(yaw)
+    corners = tuple((x + c * u - s * v, y + s * u + c * v)
+                    for u, v in ((0.0, 0.0), (w * res, 0.0), (w * res, h * res), (0.0, h * res)))
+    robot, layer = obj.get("robot"), obj.get("layer")
+    frame = obj.get("frame", "map")
+    return IsmFootprint(key, robot if isinstance(robot, str) else None,
+                        layer if isinstance(layer, str) else None,
+                        frame if isinstance(frame, str) else "map", stamp, corners)
