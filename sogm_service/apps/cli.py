@@ -66,6 +66,12 @@ def _import(argv: list[str]) -> int:
     return nav2tool.import_main(argv)
 
 
+def _view(argv: list[str]) -> int:
+    from sogm_service.apps import viewer
+
+    return viewer.main(argv)
+
+
 def _bench(argv: list[str]) -> int:
     from sogm_service import bench
 
@@ -79,6 +85,7 @@ _DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
     "demo": (_demo, "embedded demo: a server and a simulated fleet on 127.0.0.1"),
     "replay": (_replay, "replay a CARMEN laser log into a map"),
     "bench": (_bench, "the performance suite"),
+    "view": (_view, "the live map viewer in the browser (loopback only by default)"),
     "certs": (_certs, "a dev PKI and mutual-TLS / access-control Zenoh configs"),
     "export": (_export, "export nav2 --out DIR: map.yaml + map.pgm for nav2's map_server"),
     "import": (_import, "import nav2 map.yaml --layer NAME: fuse a nav2 map as a prior"),

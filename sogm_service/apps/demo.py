@@ -61,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fast", action="store_true",
                    help="do not pace the fleet in real time (as fast as the server fuses)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--view", action="store_true",
+                   help="watch the fleet map live in the browser (sogm-service view); after "
+                        "the run the map stays up until Ctrl-C")
+    p.add_argument("--http", default="127.0.0.1:8080", metavar="HOST:PORT",
+                   help="where --view serves its page (default %(default)s, loopback)")
     p.add_argument("--secure", action="store_true",
                    help="run everything through a fresh dev PKI (DIR/pki): mutual TLS and the "
                         "access-control rules of 'sogm-service certs', one identity per robot")
@@ -73,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     result = run_demo(world=world, robots=args.robots, duration_s=args.duration,
                       rate_hz=args.rate, seed=args.seed, out=args.out,
                       realtime=not args.fast, speed=args.speed, progress=not args.quiet,
-                      secure=args.secure)
+                      secure=args.secure, view=args.http if args.view else None)
     _print_summary(result, args.out)
     return 0
 
@@ -81,12 +86,14 @@ def main(argv: list[str] | None = None) -> int:
 def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 60.0,
              rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
              realtime: bool = True, speed: float = 3.0, progress: bool = True,
-             secure: bool = False) -> DemoResult:
+             secure: bool = False, view: str | None = None) -> DemoResult:
     """Run the whole demo; returns its summary (and writes every file into ``out``).
 
     ``secure``: a fresh dev PKI in ``out/pki`` (:func:`sogm_service.apps.certs.init_pki`); the
     server, each robot and the demo's own client (a viewer) open their sessions from their
-    identity's config: mutual TLS and access control by certificate name, end to end."""
+    identity's config: mutual TLS and access control by certificate name, end to end.
+    ``view``: serve the live viewer on that ``HOST:PORT`` during the run, and after it until
+    SIGINT/SIGTERM."""
     from sogm_service.service.client import MapClient
     from sogm_service.service.server import MapServer
     from sogm_service.service.session import free_tcp_endpoint
@@ -102,7 +109,10 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
         configs = _dev_pki(out / "pki", endpoint, robots)
         zenoh = {"config_file": str(configs["server"])}
     server = MapServer(_config(w.geometry.resolution, zenoh, out)).start()
+    viewer = None
     try:
+        if view is not None:
+            viewer = _start_viewer(endpoint, view, configs.get("viewer"))
         with MapClient.connect(endpoint, map_name="demo", timeout=10.0,
                                zenoh_config=configs.get("viewer")) as client:
             watcher = _FleetWatcher(client, out / "tile_events.log")
@@ -111,11 +121,38 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
             server.wait_idle(timeout=60.0)
             result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out)
             watcher.close()
+        if viewer is not None:
+            print(f"sogm-service demo: done; the map stays at {viewer.url} until Ctrl-C",
+                  flush=True)
+            _until_signal()
     finally:
+        if viewer is not None:
+            viewer.stop()  # its session closes before the server's
         server.stop()
     result.wall_s = round(time.monotonic() - started, 2)
     (out / "summary.json").write_text(json.dumps(result.__dict__, indent=2) + "\n")
     return result
+
+
+def _start_viewer(endpoint: str, http: str, zenoh_config: Path | None) -> Any:
+    from sogm_service.apps.viewer import start_viewer
+
+    args = ["--connect", endpoint, "--map", "demo", "--http", http]
+    if zenoh_config is not None:
+        args += ["--zenoh-config", str(zenoh_config)]
+    viewer = start_viewer(args)
+    print(f"sogm-service demo: watch the fleet at {viewer.url}", flush=True)
+    return viewer
+
+
+def _until_signal() -> None:
+    import signal
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
 
 
 def _dev_pki(directory: Path, endpoint: str, robots: int) -> dict[str, Path]:

@@ -35,9 +35,10 @@ from sogm_service.apps.render import UNKNOWN_BGR, dominant_class_image, probabil
 from sogm_service.apps.viewer.tiles import Lattice, TileSpec
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import LocalTangentPlane
-from sogm_service.service.client import ClientError, IsmFootprint, MapClient
+from sogm_service.service.client import IsmFootprint, MapClient
 from sogm_service.service.config import ZenohSettings
 from sogm_service.service.session import loopback_settings, open_session
+from sogm_service.wire.errors import ClientError
 from sogm_service.wire.messages import InfoReply, PoseMessage, StatsReply, TileEvent
 
 log = logging.getLogger("sogm_service.apps.viewer")
@@ -66,10 +67,9 @@ class HubSettings:
 
     def zenoh_settings(self) -> ZenohSettings:
         """Client mode to ``endpoint`` (loopback, multicast off), or the given Zenoh config
-        file as is (the secure set-up: TLS, certificates, access control) in client mode."""
+        file as it is (the secure set-up: its mode, TLS, certificates and endpoints)."""
         if self.zenoh_config is not None:
-            return ZenohSettings(mode="client", config_file=self.zenoh_config,
-                                 connect=[self.endpoint] if self.endpoint else [])
+            return ZenohSettings(config_file=self.zenoh_config)
         return loopback_settings(connect=self.endpoint, mode="client")
 
 
