@@ -301,3 +301,29 @@ def test_a_message_naming_another_robot_than_its_key_is_refused(server: ServerPr
         wait_until(lambda: "robotA" in {e.robot for e in client.robots().robots}, 10.0)
         assert {e.robot for e in client.robots().robots} == {"robotA"}
         assert client.stats().counters.get("poses_rejected_robot_mismatch") == 1
+
+
+def test_serve_without_endpoints_listens_where_clients_connect_by_default(tmp_path: Path) -> None:
+    """``sogm-service serve`` with no endpoint listens on tcp/127.0.0.1:7447, the default of
+    every client command, and says so."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        if s.connect_ex(("127.0.0.1", 7447)) == 0:
+            pytest.skip("something else listens on 127.0.0.1:7447")
+    proc = subprocess.Popen([sys.executable, "-m", "sogm_service", "serve"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        line = ""
+        while "sogm-service: serving map" not in line:
+            line = proc.stdout.readline()
+            assert line, "serve exited"
+        assert "tcp/127.0.0.1:7447" in line
+        with MapClient.connect(timeout=10.0) as client:  # the client's default endpoint
+            assert client.info().map == "default"
+    finally:
+        proc.terminate()
+        assert proc.wait(15) == 0

@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sogm_service.service.session import DEFAULT_ENDPOINT
+
 
 # Subcommands that parse their own options.  Each is imported only when it runs (so ``serve``
 # starts fast), through a plain function that tools and mypy can follow.
@@ -119,6 +121,7 @@ def _zenoh_config_arg(p: argparse.ArgumentParser) -> None:
 
 
 DEFAULT_ROUTER_LISTEN = "tcp/127.0.0.1:7447"
+DEFAULT_SERVE_LISTEN = DEFAULT_ENDPOINT  # where every client command connects by default
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -130,7 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="run the map server daemon")
     serve.add_argument("--config", type=Path, default=None, help="TOML config file")
     serve.add_argument("--listen", action="append", default=None,
-                       help="Zenoh listen endpoint (repeatable; overrides the config)")
+                       help="Zenoh listen endpoint (repeatable; overrides the config; default "
+                            f"{DEFAULT_SERVE_LISTEN} when the config names no endpoint)")
     serve.add_argument("--connect", action="append", default=None,
                        help="Zenoh connect endpoint (repeatable; overrides the config)")
     serve.add_argument("--storage", type=Path, default=None, help="tile store directory")
@@ -252,6 +256,9 @@ def _serve(args: argparse.Namespace) -> int:
         updates["connect"] = args.connect
     if args.zenoh_config:
         updates["config_file"] = args.zenoh_config
+    z = config.zenoh
+    if not (updates or z.listen or z.connect or z.config_file):  # meet the clients' default
+        updates["listen"] = [DEFAULT_SERVE_LISTEN]
     if updates:
         config = config.model_copy(update={"zenoh": config.zenoh.model_copy(update=updates)})
     if args.storage:
@@ -281,7 +288,9 @@ def _serve(args: argparse.Namespace) -> int:
     # whichever query or ISM they interrupt).
     gc.collect()
     gc.freeze()
-    print(f"sogm-service: serving map {config.map.name!r} as {server.server_id}", flush=True)
+    where = config.zenoh.listen or config.zenoh.connect or [f"{config.zenoh.config_file}"]
+    print(f"sogm-service: serving map {config.map.name!r} as {server.server_id} on "
+          f"{', '.join(map(str, where))}", flush=True)
     try:
         wait_for(stop)
     finally:

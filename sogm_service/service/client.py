@@ -26,7 +26,7 @@ from pydantic import BaseModel
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.service.config import ServiceConfig, ZenohSettings
-from sogm_service.service.session import loopback_settings, open_session
+from sogm_service.service.session import DEFAULT_ENDPOINT, loopback_settings, open_session
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError, QueryTimeoutError, ServiceError
 from sogm_service.wire.keys import MapKeys, last_chunk, pose_key, tile_of_key
@@ -98,7 +98,8 @@ class MapClient:
             config = zenoh_config if isinstance(zenoh_config, zenoh.Config) \
                 else zenoh.Config.from_file(str(zenoh_config))
             return cls(zenoh.open(config), map_name, prefix, timeout, owns_session=True)
-        settings = zenoh_settings or loopback_settings(connect=endpoint, mode="client")
+        settings = zenoh_settings or loopback_settings(connect=endpoint or DEFAULT_ENDPOINT,
+                                                       mode="client")
         return cls(open_session(settings), map_name, prefix, timeout, owns_session=True)
 
     @classmethod

@@ -12,6 +12,9 @@ import zenoh
 
 from sogm_service.service.config import ZenohSettings
 
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+"""Where ``serve`` listens and every client connects when told nothing else (loopback)."""
+
 
 def make_config(settings: ZenohSettings) -> zenoh.Config:
     """A ``zenoh.Config``.  A JSON5 file (``config_file``) is honoured as it is, mode included:
