@@ -9,6 +9,7 @@ checkpointed.  ``<prefix>/<map>/robots`` answers late joiners with each robot's 
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 
@@ -18,7 +19,10 @@ from sogm_service.core.tiletypes import TileIndex
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.stats import Stats
+from sogm_service.wire.errors import IsmRejectedError
 from sogm_service.wire.messages import GeodeticFix, PoseModel, RobotTilesReply, TileEvent
+
+log = logging.getLogger(__name__)
 
 Publish = Callable[[TileEvent], None]
 
@@ -37,6 +41,11 @@ class FleetTracker:
         self._positions: dict[str, tuple[float, float]] = {}
         self._publish: Publish | None = None
         self._tiles: Checkpointer | None = None
+        self._admitted: set[str] = set()  # every robot followed or about to be (max_robots)
+        self._pending: dict[str, tuple[float, float, float]] = {}  # latest pose per robot
+        self._pose_cond = threading.Condition()
+        self._pose_thread: threading.Thread | None = None
+        self._closed = False
 
     def attach(self, publish: Publish, tiles: Checkpointer) -> None:
         """Events go out through ``publish``; ROI changes preload and persist through ``tiles``."""
@@ -50,6 +59,8 @@ class FleetTracker:
         """A robot's pose from ``pose/**``: from now on the manager follows its poses only."""
         with self._lock:
             self._posed.add(robot)
+            self._admitted.add(robot)
+        self.stats.count("poses_applied")
         self._follow(robot, x, y, stamp)
 
     def ism_centre(self, robot: str | None, x: float, y: float, stamp: float) -> None:
@@ -59,6 +70,8 @@ class FleetTracker:
         with self._lock:
             posed = robot in self._posed
         if not posed:
+            with self._lock:
+                self._admitted.add(robot)
             self._follow(robot, x, y, stamp)
 
     def _follow(self, robot: str, x: float, y: float, stamp: float) -> None:
@@ -96,3 +109,71 @@ class FleetTracker:
     def robot_count(self) -> int:
         with self._lock:
             return len(self.manager.current_tiles())
+
+    # -- admission and pose coalescing (issue 14) -----------------------------------------
+    def check_robot(self, robot: str) -> None:
+        """Refuse a robot that would be one more than ``max_robots`` (``too_many_robots``)."""
+        with self._lock:
+            self._refuse_beyond_limit(robot)
+
+    def _refuse_beyond_limit(self, robot: str) -> None:
+        limit = self.config.limits.max_robots
+        if robot in self._admitted or len(self._admitted) < limit:
+            return
+        raise IsmRejectedError("too_many_robots", f"{limit} robots are tracked, the limit; "
+                               f"refusing robot {robot[:64]!r}", "robot")
+
+    def submit_pose(self, robot: str, x: float, y: float, stamp: float) -> bool:
+        """A checked pose, coalesced latest-per-robot for the pose worker: O(1), never blocks
+        on the map.  A pose replaced before the worker took it is counted ``poses_coalesced``;
+        one of a robot beyond ``max_robots`` is ``poses_rejected_too_many_robots``."""
+        try:
+            with self._lock:
+                self._refuse_beyond_limit(robot)
+                self._admitted.add(robot)
+        except IsmRejectedError as exc:
+            self.stats.count("poses_rejected")
+            self.stats.count(f"poses_rejected_{exc.code}")
+            return False
+        with self._pose_cond:
+            if self._closed:
+                self.stats.count("poses_rejected")
+                self.stats.count("poses_rejected_closing")
+                return False
+            if robot in self._pending:
+                self.stats.count("poses_coalesced")
+            self._pending[robot] = (x, y, stamp)
+            if self._pose_thread is None:
+                self._pose_thread = threading.Thread(target=self._pose_loop,
+                                                     name="sogm-poses", daemon=True)
+                self._pose_thread.start()
+            self._pose_cond.notify()
+        return True
+
+    def pending_poses(self) -> int:
+        with self._pose_cond:
+            return len(self._pending)
+
+    def _pose_loop(self) -> None:
+        while True:
+            with self._pose_cond:
+                self._pose_cond.wait_for(lambda: bool(self._pending) or self._closed)
+                if not self._pending and self._closed:
+                    return
+                batch, self._pending = self._pending, {}
+            for robot, (x, y, stamp) in batch.items():
+                try:
+                    self.robot_pose(robot, x, y, stamp)
+                except Exception:  # a pose must never end the worker
+                    log.exception("pose of %r failed", robot[:64])
+                    self.stats.count("poses_rejected")
+                    self.stats.count("poses_rejected_internal_error")
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Apply the poses still pending, then end the pose worker."""
+        with self._pose_cond:
+            self._closed = True
+            self._pose_cond.notify_all()
+            thread = self._pose_thread
+        if thread is not None:
+            thread.join(timeout)
