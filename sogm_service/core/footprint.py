@@ -69,6 +69,8 @@ def grid_bounds(resolution: float, width: int, height: int, x: float, y: float,
     """The metric box of a ``width x height`` grid of ``resolution`` cells with its corner
     at ``(x, y)``, rotated by ``yaw`` (may be infinite or NaN for absurd inputs: check with
     :func:`in_world`)."""
+    if not finite(resolution, x, y, yaw):
+        return (math.nan, math.nan, math.nan, math.nan)  # never in the world
     w, h = width * resolution, height * resolution
     c, s = math.cos(yaw), math.sin(yaw)
     xs = (c * 0.0 - s * 0.0 + x, c * w - s * 0.0 + x, c * w - s * h + x, c * 0.0 - s * h + x)
