@@ -161,13 +161,35 @@ class FleetTracker:
                 if not self._pending and self._closed:
                     return
                 batch, self._pending = self._pending, {}
+            try:
+                self._apply_batch(batch)
+            except Exception:  # a pose must never end the worker
+                log.exception("a batch of %d poses failed", len(batch))
+                self.stats.count("poses_rejected", len(batch))
+                self.stats.count("poses_rejected_internal_error", len(batch))
+
+    def _apply_batch(self, batch: dict[str, tuple[float, float, float]]) -> None:
+        """Every robot's latest pose at once: the fleet's regions of interest (O(robots)) are
+        worked out once per batch, not once per tile switch."""
+        events: list[TileSwitchEvent] = []
+        with self._lock:
             for robot, (x, y, stamp) in batch.items():
-                try:
-                    self.robot_pose(robot, x, y, stamp)
-                except Exception:  # a pose must never end the worker
-                    log.exception("pose of %r failed", robot[:64])
-                    self.stats.count("poses_rejected")
-                    self.stats.count("poses_rejected_internal_error")
+                self._posed.add(robot)
+                self._positions[robot] = (x, y)
+                event = self.manager.update(robot, x, y, stamp)
+                if event is not None:
+                    events.append(event)
+            entered, left = self.manager.roi_changes() if events else (set(), set())
+        self.stats.count("poses_applied", len(batch))
+        if not events:
+            return
+        self.stats.count("tile_switches", len(events))
+        if self._publish is not None:
+            for event in events:
+                self._publish(self.tile_event(event))
+        if self._tiles is not None:
+            self._tiles.preload(entered)
+            self._tiles.persist(left)
 
     def close(self, timeout: float = 5.0) -> None:
         """Apply the poses still pending, then end the pose worker."""
