@@ -20,7 +20,9 @@ SPAN = 256 * 0.05  # default tile edge (m)
 
 
 def test_a_pose_flood_is_coalesced_and_every_pose_counted(tmp_path: Path) -> None:
-    srv = start_server(tmp_path)
+    """received == applied + coalesced + rejected, and each robot ends where its last pose is
+    (a small ``max_pending_poses`` so that a backlog is coalesced rather than queued)."""
+    srv = start_server(tmp_path, {"limits": {"max_pending_poses": 64}})
     try:
         with srv.client() as c:
             before = rss_mb(srv.proc.pid)

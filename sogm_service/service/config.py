@@ -94,6 +94,7 @@ class LimitSettings(_Section):
     world_extent_m: Annotated[float, Field(gt=0, le=1e9)] = limits.WORLD_EXTENT_M
     max_layers: Annotated[int, Field(gt=0)] = limits.MAX_LAYERS
     max_robots: Annotated[int, Field(gt=0)] = limits.MAX_ROBOTS
+    max_pending_poses: Annotated[int, Field(gt=0)] = limits.MAX_PENDING_POSES
     max_robot_name: Annotated[int, Field(gt=0)] = limits.MAX_ROBOT_NAME
     max_layer_name: Annotated[int, Field(gt=0, le=128)] = limits.MAX_LAYER_NAME
     max_query_read_cells: Annotated[int, Field(gt=0)] = limits.MAX_QUERY_READ_CELLS

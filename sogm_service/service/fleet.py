@@ -13,6 +13,7 @@ import logging
 import threading
 from collections.abc import Callable
 
+from sogm_service.core.footprint import point_in_world
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.tilemanager import TileManager, TileSwitchEvent
 from sogm_service.core.tiletypes import TileIndex
@@ -42,7 +43,10 @@ class FleetTracker:
         self._publish: Publish | None = None
         self._tiles: Checkpointer | None = None
         self._admitted: set[str] = set()  # every robot followed or about to be (max_robots)
-        self._pending: dict[str, tuple[float, float, float]] = {}  # latest pose per robot
+        # poses waiting for the pose worker, in arrival order; coalesced latest-per-robot
+        # whenever more than max_pending_poses wait (memory stays O(limit + robots))
+        self._pending: list[tuple[str, float, float, float]] = []
+        self._coalesce_at = config.limits.max_pending_poses
         self._pose_cond = threading.Condition()
         self._pose_thread: threading.Thread | None = None
         self._closed = False
@@ -124,10 +128,16 @@ class FleetTracker:
                                f"refusing robot {robot[:64]!r}", "robot")
 
     def submit_pose(self, robot: str, x: float, y: float, stamp: float) -> bool:
-        """A checked pose, coalesced latest-per-robot for the pose worker: O(1), never blocks
-        on the map.  A pose replaced before the worker took it is counted ``poses_coalesced``;
-        one of a robot beyond ``max_robots`` is ``poses_rejected_too_many_robots``."""
+        """A checked pose, queued for the pose worker: O(1) amortised, never blocks on the map.
+        Beyond ``max_pending_poses`` waiting, the queue is coalesced latest-per-robot (the
+        replaced poses are counted ``poses_coalesced``); a pose of a robot beyond
+        ``max_robots`` is ``poses_rejected_too_many_robots``."""
         try:
+            lim = self.config.limits
+            if len(robot) > lim.max_robot_name:
+                raise IsmRejectedError("name_too_long", "robot name too long", "robot")
+            if not point_in_world(x, y, lim.world_extent_m):
+                raise IsmRejectedError("out_of_world", "pose outside the world", "x")
             with self._lock:
                 self._refuse_beyond_limit(robot)
                 self._admitted.add(robot)
@@ -140,15 +150,26 @@ class FleetTracker:
                 self.stats.count("poses_rejected")
                 self.stats.count("poses_rejected_closing")
                 return False
-            if robot in self._pending:
-                self.stats.count("poses_coalesced")
-            self._pending[robot] = (x, y, stamp)
+            self._pending.append((robot, x, y, stamp))
+            if len(self._pending) > self._coalesce_at:
+                self._coalesce()
             if self._pose_thread is None:
                 self._pose_thread = threading.Thread(target=self._pose_loop,
                                                      name="sogm-poses", daemon=True)
                 self._pose_thread.start()
             self._pose_cond.notify()
         return True
+
+    def _coalesce(self) -> None:
+        """Keep only each robot's latest waiting pose (in the order of those poses); the next
+        coalescing waits for another ``max_pending_poses`` (amortised O(1) a pose)."""
+        latest: dict[str, tuple[str, float, float, float]] = {}
+        for item in self._pending:
+            latest.pop(item[0], None)
+            latest[item[0]] = item
+        self.stats.count("poses_coalesced", len(self._pending) - len(latest))
+        self._pending = list(latest.values())
+        self._coalesce_at = len(self._pending) + self.config.limits.max_pending_poses
 
     def pending_poses(self) -> int:
         with self._pose_cond:
@@ -160,7 +181,8 @@ class FleetTracker:
                 self._pose_cond.wait_for(lambda: bool(self._pending) or self._closed)
                 if not self._pending and self._closed:
                     return
-                batch, self._pending = self._pending, {}
+                batch, self._pending = self._pending, []
+                self._coalesce_at = self.config.limits.max_pending_poses
             try:
                 self._apply_batch(batch)
             except Exception:  # a pose must never end the worker
@@ -168,12 +190,12 @@ class FleetTracker:
                 self.stats.count("poses_rejected", len(batch))
                 self.stats.count("poses_rejected_internal_error", len(batch))
 
-    def _apply_batch(self, batch: dict[str, tuple[float, float, float]]) -> None:
-        """Every robot's latest pose at once: the fleet's regions of interest (O(robots)) are
-        worked out once per batch, not once per tile switch."""
+    def _apply_batch(self, batch: list[tuple[str, float, float, float]]) -> None:
+        """The waiting poses in arrival order (every tile switch is an event), the fleet's
+        regions of interest (O(robots)) worked out once per batch, not once per switch."""
         events: list[TileSwitchEvent] = []
         with self._lock:
-            for robot, (x, y, stamp) in batch.items():
+            for robot, x, y, stamp in batch:
                 self._posed.add(robot)
                 self._positions[robot] = (x, y)
                 event = self.manager.update(robot, x, y, stamp)

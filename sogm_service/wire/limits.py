@@ -48,6 +48,10 @@ MAX_ROBOTS: Final = 4096
 """Most robots the fleet tracker follows; a pose or ISM of one more is refused
 (``too_many_robots``)."""
 
+MAX_PENDING_POSES: Final = 8192
+"""Poses waiting for the pose worker; beyond, the waiting ones are coalesced latest-per-robot
+(``poses_coalesced``), so a flood costs O(limit + robots) memory and is never dropped uncounted."""
+
 MAX_ROBOT_NAME: Final = 128
 """Longest robot name (characters) in a key or a message (``name_too_long``)."""
 
