@@ -280,9 +280,16 @@ def _serve(args: argparse.Namespace) -> int:
             return 2
         config = config.model_copy(update={"ros2": section})
     from sogm_service.service.server import MapServer
+    from sogm_service.wire.errors import StoreLockedError
 
     stop = stop_on_signal()
-    server = MapServer(config).start()
+    try:
+        server = MapServer(config).start()
+    except StoreLockedError as exc:  # an operator's mistake: one line, no traceback
+        print(f"sogm-service serve: store {exc.directory} is locked by "
+              f"{'pid ' + str(exc.pid) if exc.pid is not None else 'another process'}; "
+              "one server per store directory", file=sys.stderr)
+        return 2
     # Everything imported and built so far lives as long as the process: keep it out of the
     # cyclic GC's full collections (~20 ms each with ~50k objects, a latency spike for
     # whichever query or ISM they interrupt).

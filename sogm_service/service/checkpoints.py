@@ -40,7 +40,8 @@ def open_store(config: ServiceConfig) -> DirectoryStore | None:
                               config.map.tile_size, frame=config.map.frame,
                               datum=config.map.datum)
     except StoreLockedError as exc:
-        raise RuntimeError(f"tile store {directory} is in use by another server: {exc}") from None
+        raise StoreLockedError(f"tile store {directory} is in use by another server: {exc}",
+                               str(directory), exc.pid) from None
 
 
 class Checkpointer:

@@ -291,7 +291,9 @@ def _service_error(payload: bytes) -> ServiceError:
         err = codec.decode(ErrorReply, payload)
     except DecodeError:
         return ServiceError("unknown", payload[:200].decode("utf-8", "replace"))
-    return ServiceError(err.code, err.message, err.parameter)
+    exc = ServiceError(err.code, err.message, err.parameter)
+    exc.retry_after_s = err.retry_after_s
+    return exc
 
 
 @dataclass(frozen=True)

@@ -92,6 +92,18 @@ class LimitSettings(_Section):
     queue_size: Annotated[int, Field(ge=1, le=100000)] = limits.QUEUE_SIZE
     queue_policy: Literal["lossless", "latest"] = "lossless"
     fuse_workers: Annotated[int, Field(ge=1, le=64)] = limits.FUSE_WORKERS
+    world_extent_m: Annotated[float, Field(gt=0, le=1e9)] = limits.WORLD_EXTENT_M
+    max_layers: Annotated[int, Field(gt=0)] = limits.MAX_LAYERS
+    max_robots: Annotated[int, Field(gt=0)] = limits.MAX_ROBOTS
+    max_pending_poses: Annotated[int, Field(gt=0)] = limits.MAX_PENDING_POSES
+    max_robot_name: Annotated[int, Field(gt=0)] = limits.MAX_ROBOT_NAME
+    max_layer_name: Annotated[int, Field(gt=0, le=128)] = limits.MAX_LAYER_NAME
+    max_query_read_cells: Annotated[int, Field(gt=0)] = limits.MAX_QUERY_READ_CELLS
+    max_reply_bytes: Annotated[int, Field(gt=0)] = limits.MAX_REPLY_BYTES
+    max_supercell_cells: Annotated[int, Field(gt=0)] = limits.MAX_SUPERCELL_CELLS
+    max_heavy_queries: Annotated[int, Field(gt=0)] = limits.MAX_HEAVY_QUERIES
+    busy_retry_s: Annotated[float, Field(gt=0)] = limits.BUSY_RETRY_S
+    log_text_chars: Annotated[int, Field(ge=16)] = limits.LOG_TEXT_CHARS
 
 
 class Ros2Settings(_Section):

@@ -5,7 +5,8 @@ DESIGN.md section 2, in this order and nowhere else:
 1. **decode and validate** the payload (:mod:`sogm_service.wire.codec`, the pydantic model);
 2. **prepare**: the layer name (the ``layer`` field or the key's remainder), the frame check,
    fixed log-odds increments (a 256-entry lookup table for 8-bit encodings) and the geometry;
-3. **bound checks** from the header alone (how many tiles the footprint touches);
+3. **bound checks** from the header alone (:class:`~sogm_service.service.admission.Admission`:
+   world extent, tiles touched, names, layers, robots, memory without a store);
 4. **align**: scan matching per the source's policy (:class:`~sogm_service.service.matcher.Matcher`)
 5. **fuse**: Eq. 1 into every tile the ISM overlaps (:meth:`~sogm_service.core.tiles.TiledMap.fuse`)
 6. **tile bookkeeping**: the fleet tracker follows the ISM's robot, the memory budget is kept.
@@ -26,10 +27,11 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core import logodds
-from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.core.resample import Interp
 from sogm_service.core.tiles import TiledMap
 from sogm_service.core.tiletypes import TileIndex
+from sogm_service.service.admission import Admission
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fleet import FleetTracker
@@ -104,15 +106,6 @@ def increments(msg: IsmMessage, frame: str, eps0: float) -> npt.NDArray[np.int16
     return logodds.increments(msg.array(), msg.encoding, eps0)
 
 
-def check_extent(lattice: TileLattice, geometry: GridGeometry, max_tiles: int) -> None:
-    """Refuse an ISM whose footprint would touch more than ``max_tiles`` tiles (a valid but
-    absurd resolution could otherwise create millions of tiles)."""
-    n = len(lattice.tiles_overlapping(geometry))
-    if n > max_tiles:
-        raise IsmRejectedError("too_large", f"the ISM covers {n} tiles; the limit is "
-                                            f"{max_tiles} (check its resolution)", "resolution")
-
-
 def fuse_ism(tiled: TiledMap, msg: IsmMessage, layer: str,
              interp: Interp = "biodds") -> list[TileIndex]:
     """Eq. 1 for one ISM as it claims to be placed, in one process (tests, benchmarks): steps
@@ -136,8 +129,8 @@ class IngestPipeline:
         self.fleet = fleet
         self.tiles = tiles
         self.fusers = fusers
-        self.rejections = Rejections(stats)
-        self._lattice = TileLattice(config.map.resolution, config.map.tile_size)
+        self.rejections = Rejections(stats, config.limits.log_text_chars)
+        self.admission = Admission(config, stats)
 
     def handle(self, item: IsmItem) -> None:
         """Decode, validate, prepare, check and align one ISM, then hand it to the fuse
@@ -146,7 +139,7 @@ class IngestPipeline:
         try:
             msg = self.decode(item)
             ism = self.prepare(item, msg)
-            check_extent(self._lattice, ism.geometry, self.config.limits.max_ism_tiles)
+            self.admission.check_ism(msg, ism.layer, msg.robot, self.tiled, self.fleet)
             ism = self.align(ism)
             self.tiled.layer_id(ism.layer, create=True)  # layers in arrival order, any K
             self.fusers.submit(FuseJob(
@@ -155,7 +148,7 @@ class IngestPipeline:
         except SogmError as exc:
             self.rejections.reject(exc.code, f"{item.key}: {exc}")
         except Exception as exc:  # never let one ISM kill the worker
-            log.exception("internal error on ISM from %s", item.key)
+            log.exception("internal error on ISM from %s", item.key[:200])
             self.rejections.reject("internal_error", f"{item.key}: {type(exc).__name__}: {exc}")
 
     def decode(self, item: IsmItem) -> IsmMessage:

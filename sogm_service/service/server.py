@@ -42,7 +42,7 @@ from sogm_service.service.replication import Replication
 from sogm_service.service.session import open_session
 from sogm_service.service.stats import Stats
 from sogm_service.wire import codec
-from sogm_service.wire.errors import DecodeError, SogmError
+from sogm_service.wire.errors import SogmError
 from sogm_service.wire.keys import QUERYABLES, last_chunk
 from sogm_service.wire.messages import (
     ErrorReply,
@@ -155,6 +155,7 @@ class MapServer:
         self._events = None
         self._worker.stop(timeout)
         self.fusers.close(timeout)
+        self.fleet.close(timeout)
         self.tiles.close(timeout)
         if self._owns_session and self._session is not None:
             self._session.close()
@@ -182,19 +183,17 @@ class MapServer:
         return on_ism
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
+        self.stats.count("poses_received")  # = applied + coalesced + rejected (+ pending)
         try:
             msg = codec.decode(PoseMessage, sample.payload.to_bytes())
-        except DecodeError as exc:
-            self.stats.count(f"poses_rejected_{exc.code}")
-            return
-        robot = last_chunk(str(sample.key_expr))
-        try:
+            robot = last_chunk(str(sample.key_expr))
             check_robot(msg.robot, robot)
+            self.pipeline.admission.check_pose(robot, msg.x, msg.y)
         except SogmError as exc:
+            self.stats.count("poses_rejected")
             self.stats.count(f"poses_rejected_{exc.code}")
             return
-        self.stats.count("poses_received")
-        self.fleet.robot_pose(robot, msg.x, msg.y, msg.stamp)
+        self.fleet.submit_pose(robot, msg.x, msg.y, msg.stamp)
 
     def _publish_event(self, event: TileEvent) -> None:
         if self._events is not None:
@@ -217,8 +216,9 @@ class MapServer:
                     q.reply(q.key_expr, payload)
             except SogmError as exc:
                 self.stats.count(f"query_errors_{exc.code}")
-                q.reply_err(codec.encode(ErrorReply(code=exc.code, message=exc.message,
-                                                    parameter=exc.parameter)))
+                q.reply_err(codec.encode(ErrorReply(
+                    code=exc.code, message=exc.message, parameter=exc.parameter,
+                    retry_after_s=getattr(exc, "retry_after_s", None))))
             except Exception as exc:
                 log.exception("internal error answering %s", q.selector)
                 self.stats.count("query_errors_internal")
@@ -235,25 +235,30 @@ class MapServer:
 
     def _on_submap(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SubmapRequest, *self.params(q))
-        return queries.submap(self.map, req, self.config.limits.max_query_cells, time.time())
+        return queries.submap(self.map, req, self.config.limits.max_query_cells, time.time(),
+                              admission=self.pipeline.admission)
 
     def _on_fused(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(FusedRequest, *self.params(q))
-        return queries.fused(self.map, req, self.config.limits.max_query_cells, time.time())
+        return queries.fused(self.map, req, self.config.limits.max_query_cells, time.time(),
+                             admission=self.pipeline.admission)
 
     def _on_supercells(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SupercellRequest, *self.params(q))
-        window, layers, stack = queries.supercell_input(
-            self.map, req, self.config.limits.max_query_cells)
-        return queries.supercells(self.map, req, window, layers, stack, time.time())
+        with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
+            window, layers, stack = queries.supercell_input(
+                self.map, req, self.config.limits.max_query_cells,
+                admission=self.pipeline.admission)
+            return queries.supercells(self.map, req, window, layers, stack, time.time())
 
     def info(self) -> InfoReply:
         tiled = self.map
+        tiles = self.pipeline.admission.reportable_tiles(tiled.known_tiles())
         return InfoReply(
             map=tiled.name, frame=tiled.frame, server_id=self.server_id,
             resolution=tiled.lattice.resolution, tile_size=tiled.tile_size,
             eps0=tiled.eps0, logodds_scale=1000.0, layers=list(tiled.layers),
-            tiles=sorted(tiled.known_tiles()), bounds=tiled.bounds(),
+            tiles=tiles, bounds=self.pipeline.admission.bounds_of(tiles),
             datum=self.config.map.datum)
 
     def stats_reply(self) -> StatsReply:

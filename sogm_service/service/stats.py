@@ -74,8 +74,9 @@ class Rejections:
     """Counts each refusal by reason and logs it in one line, at most one a second per reason
     (the rest are counted and their number said with the next line)."""
 
-    def __init__(self, stats: Stats) -> None:
+    def __init__(self, stats: Stats, text_chars: int = 200) -> None:
         self._stats = stats
+        self._text_chars = text_chars
         self._lock = threading.Lock()
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
@@ -90,4 +91,13 @@ class Rejections:
             extra = self._suppressed.pop(reason, 0)
             self._last[reason] = now
         more = f" ({extra} more of this reason suppressed)" if extra else ""
-        log.warning("rejected ISM [%s]: %s%s", reason, text, more)
+        log.warning("rejected ISM [%s]: %s%s", cut(reason, 64), cut(text, self._text_chars),
+                    more)
+
+
+def cut(text: str, limit: int = 200) -> str:
+    """``text`` cut to ``limit`` characters (attacker strings in log lines), saying how much
+    was left out."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}...[{len(text) - limit} more characters]"

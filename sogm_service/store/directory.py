@@ -86,10 +86,25 @@ def lock_directory(directory: Path) -> int:
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
+        holder = _lock_holder(fd)
         os.close(fd)
-        raise StoreLockedError(f"{directory} is in use by another process (lock {LOCK_FILE}); "
-                               "one writer per store directory") from None
+        who = f"process {holder}" if holder is not None else "another process"
+        raise StoreLockedError(f"{directory} is in use by {who} (lock {LOCK_FILE}); "
+                               "one writer per store directory", str(directory),
+                               holder) from None
+    with contextlib.suppress(OSError):  # the holder's pid, for the next one's error message
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
     return fd
+
+
+def _lock_holder(fd: int) -> int | None:
+    """The pid the lock's holder wrote into the lock file, if any."""
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
 
 
 

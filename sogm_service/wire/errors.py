@@ -31,6 +31,13 @@ ISM_CODES: Final[dict[str, str]] = {
     "robot_mismatch": "the message names another robot than its key (ism/<robot>/..., "
                       "pose/<robot>)",
     "internal_error": "the server failed on this ISM (a bug: the map is unchanged)",
+    "out_of_world": "a corner of the ISM lies outside the configured world extent around the "
+                    "map origin",
+    "too_many_layers": "the ISM would add a layer beyond the map's layer limit",
+    "too_many_robots": "the ISM's robot would be one more than the robots tracked limit",
+    "name_too_long": "the robot or layer name is longer than its limit",
+    "memory_budget": "the ISM would create tiles beyond the memory budget of a map without a "
+                     "tile store",
 }
 """Why a well-formed ISM cannot go into this map (:class:`IsmRejectedError`); scan matching adds
 ``match_<reason>`` (:class:`sogm_service.core.matching.MatchReason`)."""
@@ -62,8 +69,20 @@ QUERY_CODES: Final[dict[str, str]] = {
     "unknown_layer": "a requested layer does not exist",
     "window_too_large": "the window needs more cells than the limit",
     "internal_error": "the server failed on this query (a bug)",
+    "out_of_world": "the window lies (partly) outside the configured world extent",
+    "reply_too_large": "the reply would exceed the reply byte limit",
+    "busy": "too many heavy queries run at once; retry after retry_after_s",
 }
 """Why a query cannot be answered (:class:`QueryError`)."""
+
+POSE_CODES: Final[dict[str, str]] = {
+    "robot_mismatch": "the pose names another robot than its key",
+    "out_of_world": "the pose lies outside the configured world extent",
+    "too_many_robots": "the pose's robot would be one more than the robots tracked limit",
+    "name_too_long": "the robot name is longer than its limit",
+}
+"""Why a well-formed pose is refused (counted as ``poses_rejected_<code>``; decoding failures
+use :data:`DECODE_CODES`)."""
 
 
 class SogmError(Exception):
@@ -88,6 +107,14 @@ class QueryError(SogmError, ValueError):
     """A query that cannot be answered (codes: :data:`QUERY_CODES`)."""
 
 
+class BusyError(QueryError):
+    """Too many heavy queries at once: ``busy``, with a retry hint in seconds."""
+
+    def __init__(self, message: str, retry_after_s: float) -> None:
+        super().__init__("busy", message)
+        self.retry_after_s = retry_after_s
+
+
 class ConfigError(SogmError, ValueError):
     """A configuration that cannot be used: says which field and why."""
 
@@ -104,10 +131,14 @@ class TileFormatError(SogmError, ValueError):
 
 
 class StoreLockedError(SogmError, RuntimeError):
-    """Another process owns the store directory."""
+    """Another process owns the store directory (``directory``; ``pid`` of the holder when
+    its lock file names one)."""
 
-    def __init__(self, message: str) -> None:
+    def __init__(self, message: str, directory: str | None = None,
+                 pid: int | None = None) -> None:
         super().__init__("store_locked", message)
+        self.directory = directory
+        self.pid = pid
 
 
 class ClientError(RuntimeError):
@@ -115,7 +146,10 @@ class ClientError(RuntimeError):
 
 
 class ServiceError(SogmError, ClientError):
-    """The server refused the request: ``code`` (machine-readable), ``parameter`` at fault."""
+    """The server refused the request: ``code`` (machine-readable), ``parameter`` at fault;
+    ``retry_after_s`` with ``busy``."""
+
+    retry_after_s: float | None = None
 
     def __str__(self) -> str:
         return f"[{self.code}] {self.message}"

@@ -37,3 +37,47 @@ LAYER_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-./]{1,128}$"
 
 MAP_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-]+$"
 """What a map name may be (it is one chunk of every key and of every tile file name)."""
+
+# -- admission (issue 14): every cost priced from a header before any work -------------------
+
+WORLD_EXTENT_M: Final = 1_000_000.0
+"""Half-width (m) of the square world around the map origin: every ISM corner, pose and query
+window must lie in ``[-extent, extent]^2`` (``out_of_world``).  Also keeps every tile index
+far inside int64 and every coordinate finite."""
+
+MAX_LAYERS: Final = 256
+"""Most layers one map may hold; an ISM that would add one more is refused (``too_many_layers``)."""
+
+MAX_ROBOTS: Final = 4096
+"""Most robots the fleet tracker follows; a pose or ISM of one more is refused
+(``too_many_robots``)."""
+
+MAX_PENDING_POSES: Final = 8192
+"""Poses waiting for the pose worker; beyond, the waiting ones are coalesced latest-per-robot
+(``poses_coalesced``), so a flood costs O(limit + robots) memory and is never dropped uncounted."""
+
+MAX_ROBOT_NAME: Final = 128
+"""Longest robot name (characters) in a key or a message (``name_too_long``)."""
+
+MAX_LAYER_NAME: Final = 128
+"""Longest layer name (characters) (``name_too_long``; the pattern also says at most 128)."""
+
+MAX_QUERY_READ_CELLS: Final = 4096 * 4096
+"""Most map cells (at map resolution, x layers) one window query may read, whatever the
+resolution of its reply (``window_too_large``)."""
+
+MAX_REPLY_BYTES: Final = 64 * 1024 * 1024
+"""Largest reply payload a query may cause, priced from its window before sampling
+(``reply_too_large``)."""
+
+MAX_SUPERCELL_CELLS: Final = 1024 * 1024
+"""Most window cells one ``supercells`` query may segment (SEVDS is the heaviest query)."""
+
+MAX_HEAVY_QUERIES: Final = 2
+"""Heavy queries (``supercells``) running at once; one more is answered ``busy``."""
+
+BUSY_RETRY_S: Final = 1.0
+"""The retry hint (``retry_after_s``) sent with ``busy``."""
+
+LOG_TEXT_CHARS: Final = 200
+"""Rejection log lines cut every attacker-controlled string to this many characters."""

@@ -389,6 +389,7 @@ class ErrorReply(WireModel):
     code: str
     message: str
     parameter: str | None = None
+    retry_after_s: float | None = None  # with ``busy``: when to ask again (seconds)
 
 
 SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
