@@ -34,6 +34,7 @@ import numpy as np
 
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.adapters.laser import encode_occupancy_i8, encode_prob_u8, encode_prob_u8_v2
+from sogm_service.adapters.laser_lattice import ISM_GRIDS, scan_ism_on_lattice
 from sogm_service.core.geometry import Pose2D
 from sogm_service.service.client import MapClient
 from sogm_service.sim.robots import SimStep, simulate
@@ -158,14 +159,22 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
                  sensor: str = "laser", layer: str = "obstacle", resolution: float = 0.05,
                  usable_range: float = DEFAULT_USABLE_RANGE, speed: float = 1.0,
                  encoding: str = "occupancy_i8", ism_prefix: str = "ism",
-                 pose_prefix: str = "pose", stop: threading.Event | None = None) -> FleetStats:
+                 pose_prefix: str = "pose", stop: threading.Event | None = None,
+                 grid: str = "lattice") -> FleetStats:
     """Publish recorded scans (e.g. :func:`sogm_service.adapters.carmen.read_carmen`) as one robot.
 
     Per scan: the laser pose on ``pose/<robot>`` and its ISM
     (:func:`~sogm_service.adapters.carmen.scan_ism`) on ``ism/<robot>/<sensor>/<layer>``, stamped
     with the log's own stamps.  ``speed`` scales the log's pace (2.0 = twice as fast; 0 = as fast as
     possible).  The backbone of ``sogm-service replay carmen FILE``.
+
+    ``grid = "lattice"`` (default) casts each ISM on the map's cells at ``resolution``
+    (:func:`~sogm_service.adapters.laser_lattice.scan_ism_on_lattice`: the server adds it
+    without resampling, so walls and beams stay as sharp as the scan; ``resolution`` must be the
+    map's); ``"sensor"`` publishes the sensor-aligned grid the server resamples (issue 19).
     """
+    if grid not in ISM_GRIDS:
+        raise ValueError(f"unknown ISM grid {grid!r}; use one of {ISM_GRIDS}")
     stats = FleetStats()
     t_wall0 = time.monotonic()
     link = RobotLink(robot, endpoint, ism_prefix=ism_prefix, pose_prefix=pose_prefix,
@@ -178,7 +187,8 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
             stamp0 = scan.stamp if stamp0 is None else stamp0
             if speed > 0:
                 _sleep_until(t_wall0 + (scan.stamp - stamp0) / speed, stop)
-            geom, p = scan_ism(scan, resolution, usable_range)
+            geom, p = (scan_ism_on_lattice(scan, resolution, usable_range) if grid == "lattice"
+                       else scan_ism(scan, resolution, usable_range))
             link.publish_pose(scan.pose, scan.stamp, stats)
             link.publish_ism(SensorIsm(layer, geom, p, sensor), scan.stamp, stats)
             stats.steps += 1
