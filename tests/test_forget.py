@@ -265,7 +265,7 @@ def test_a_bad_decay_field_is_refused(bad: object) -> None:
     expect_ = Expectation("m", 1.0, 16, "map")
     blob = tile_to_bytes(tile_header(expect_, 0, 0, ["people"], 5.0),
                          np.zeros((1, 16, 16), dtype=np.int16))
-    header, fields, start = parse_header(blob)
+    _, fields, start = parse_header(blob)
     fields["decay"] = bad
     meta = json.dumps(fields, separators=(",", ":")).encode()
     import struct

@@ -146,7 +146,7 @@ def test_one_beam_is_its_cells_exactly() -> None:
 
 
 def test_diagonal_beam_visits_one_cell_per_step() -> None:
-    geom, p = laser_ism_on_lattice([math.hypot(0.5, 0.25)], [math.atan2(0.25, 0.5)],
+    _, p = laser_ism_on_lattice([math.hypot(0.5, 0.25)], [math.atan2(0.25, 0.5)],
                                    Pose2D(0.025, 0.025, 0.0), RES, 10.0)
     assert np.count_nonzero(p == np.float32(0.3)) == 10  # 10 major-axis steps before the hit
     assert np.count_nonzero(p == np.float32(0.8)) == 1
