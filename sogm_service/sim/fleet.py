@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -116,7 +116,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               sensors: Sequence[Sensor] | None = None, realtime: bool = True,
               encoding: str = "occupancy_i8", ism_prefix: str = "ism", pose_prefix: str = "pose",
               stop: threading.Event | None = None, speed: float = 1.0,
-              zenoh_configs: Mapping[str, Path] | None = None) -> FleetStats:
+              zenoh_configs: Mapping[str, Path] | None = None,
+              observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = ()) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
@@ -125,7 +126,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     out as fast as they are simulated (tests, bulk loading).  Stamps are wall-clock seconds of
     the run's start plus simulated time.  ``stop`` ends the run early.  ``zenoh_configs`` gives
     robots their own Zenoh config (``robot1`` -> its JSON5, e.g. from ``sogm-service certs``)
-    instead of a plain connection to ``endpoint``.  Blocks until done.
+    instead of a plain connection to ``endpoint``.  ``observers`` add ISMs to each step
+    (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -141,6 +143,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
                              sensors=sensors):
             if stop is not None and stop.is_set():
                 break
+            for observe in observers:
+                step.isms.extend(observe(step))
             if realtime:
                 _sleep_until(t_wall0 + step.stamp / speed, stop)
             links[step.robot].publish(step, t_epoch0 + step.stamp, stats)
