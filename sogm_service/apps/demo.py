@@ -45,6 +45,7 @@ class DemoResult:
     files: list[str] = field(default_factory=list)
     supercells: int | None = None
     wall_s: float = 0.0
+    moving: dict[str, Any] = field(default_factory=dict)  # the forgetting person layer
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -108,7 +109,9 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     if secure:
         configs = _dev_pki(out / "pki", endpoint, robots)
         zenoh = {"config_file": str(configs["server"])}
-    server = MapServer(_config(w.geometry.resolution, zenoh, out)).start()
+    from sogm_service.apps.demo_moving import forgetting_config
+
+    server = MapServer(forgetting_config(_config(w.geometry.resolution, zenoh, out), w)).start()
     viewer = None
     try:
         if view is not None:
@@ -219,9 +222,13 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
     box: dict[str, Any] = {}
 
     def fleet() -> None:
+        from sogm_service.apps.demo_moving import demo_observers, demo_sensors
+
         box["stats"] = run_fleet(world, endpoint, robots=robots, duration_s=duration_s,
                                  rate_hz=rate_hz, seed=seed, realtime=realtime, speed=speed,
-                                 zenoh_configs=configs or None)
+                                 zenoh_configs=configs or None,
+                                 sensors=demo_sensors(world),
+                                 observers=demo_observers(world))
 
     thread = threading.Thread(target=fleet, name="demo-fleet")
     t0 = time.monotonic()
@@ -255,23 +262,26 @@ def _progress_bar(elapsed: float, total: float | None, fused: int, tty: bool) ->
 
 def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet: Any,
             world_name: str, robots: int, duration_s: float, out: Path) -> DemoResult:
+    from sogm_service.apps.demo_moving import MOVING_LAYERS, report_moving
+
     files: list[str] = []
     info = client.info()
-    layers = list(info.layers)
+    moving = report_moving(client, world, out, files, duration_s)
+    layers = [n for n in info.layers if n not in MOVING_LAYERS]  # reported on their own
     full = _world_window(world)
-    sub = client.submap(**full, encoding="prob_f32")
+    sub = client.submap(**full, layers=layers, encoding="prob_f32")
     files += _write_layers(sub, out)
     files += _write_fused(client, full, obstacle_layers(layers), out)
     files.append(_write_png(out / "ground_truth.png", _ground_truth_image(world, layers)))
-    latency = _robot_submaps(client, watcher, world.geometry.resolution, out, files)
-    supercells = _write_supercells(client, world, watcher, out, files)
+    latency = _robot_submaps(client, watcher, world.geometry.resolution, out, files, layers)
+    supercells = _write_supercells(client, world, watcher, out, files, layers)
     counters, rejected = server.stats.snapshot()
     return DemoResult(
         world=world_name, robots=robots, duration_s=duration_s, isms_published=fleet.isms,
         isms_fused=counters.get("isms_fused", 0), isms_rejected=sum(rejected.values()),
         tile_switches=watcher.events, layers=layers,
         iou=class_iou(world, layers, sub.probabilities()), submap_latency_ms=latency,
-        files=sorted(files), supercells=supercells)
+        files=sorted(files), supercells=supercells, moving=moving)
 
 
 def _world_window(world: Any) -> dict[str, Any]:
@@ -357,7 +367,7 @@ def _ground_truth_image(world: Any, layers: list[str]) -> npt.NDArray[np.uint8]:
 
 
 def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Path,
-                   files: list[str]) -> dict[str, float]:
+                   files: list[str], layers: list[str] | None = None) -> dict[str, float]:
     """A rotated window around each robot at 2x the map's cell size; timed queries."""
     from sogm_service.apps.render import dominant_class_image
 
@@ -368,7 +378,7 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
         window = dict(x=pose.x, y=pose.y, yaw=pose.yaw, width=side, height=side, resolution=res)
         for _ in range(10):
             t0 = time.perf_counter()
-            sub = client.submap(**window, encoding="prob_u8")
+            sub = client.submap(**window, layers=layers, encoding="prob_u8")
             timings.append(time.perf_counter() - t0)
         files.append(_write_png(out / f"submap_{robot}.png",
                                 dominant_class_image(sub.probabilities(), scale=2)))
@@ -380,7 +390,7 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
 
 
 def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path,
-                      files: list[str]) -> int | None:
+                      files: list[str], layers: list[str] | None = None) -> int | None:
     """The SEVDS graph of a 128 x 128 cell window around the first robot, over the fused map."""
     from sogm_service.apps.render import draw_graph
 
@@ -390,7 +400,7 @@ def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path
     res = world.geometry.resolution
     window = dict(x=pose.x, y=pose.y, yaw=0.0, width=128 * res, height=128 * res,
                   resolution=res)
-    reply = client.supercells(**window, labels=True)
+    reply = client.supercells(**window, labels=True, layers=layers)
     fused = client.fused(method="max", **window, layers=obstacle_layers(reply.layers),
                          encoding="prob_f32")
     files.append(_write_png(out / "supercells.png", draw_graph(reply, fused, scale=3)))
@@ -409,4 +419,11 @@ def _print_summary(r: DemoResult, out: Path) -> None:
               f"p99 {r.submap_latency_ms['p99']:.1f} ms")
     if r.supercells is not None:
         print(f"  supercells in the graph window: {r.supercells}")
+    if r.moving:
+        m = r.moving
+        age = m.get("oldest_occupied_age_s")
+        print(f"  moving person (layer {m['layer']}, half-life {m['half_life_s']:.0f} s): "
+              f"{m['occupied_cells']} cells occupied now"
+              + (f", last walked {age:.0f} s ago at most" if age is not None else "")
+              + f"; highest p {m['p_max_now']:.2f}")
     print(f"  wrote {len(r.files)} files and summary.json to {out}/")

@@ -51,6 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--speed", type=float, default=0.0,
                    help="pace relative to the log's stamps (0: as fast as possible)")
     c.add_argument("--robot", default="carmen")
+    c.add_argument("--ism-grid", choices=["lattice", "sensor"], default="lattice",
+                   help="cast each laser ISM on the map's cells (lattice: sharp, no "
+                        "resampling; --resolution must be the map's) or on a sensor-aligned "
+                        "grid the server resamples (sensor)")
     c.add_argument("--png", type=Path, default=Path("carmen-map.png"))
     c.add_argument("--npy", type=Path, default=None)
     b = sub.add_parser("rosbag", help="a ROS 1 bag or a ROS 2 bag (sqlite3 or mcap): "
@@ -80,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             result = replay_carmen(args.file, endpoint=args.connect, map_name=args.map,
                                    resolution=args.resolution, limit=args.limit,
-                                   speed=args.speed, robot=args.robot)
+                                   speed=args.speed, robot=args.robot, grid=args.ism_grid)
     except NoScansError as exc:
         print(f"sogm-service replay: {args.file}: {exc}", file=sys.stderr)
         return 2
@@ -170,8 +174,9 @@ def _collect(endpoint: str, publish: Any, n: int, scans: list[Any], grids: list[
 
 def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "default",
                   resolution: float = 0.05, limit: int | None = None, speed: float = 0.0,
-                  robot: str = "carmen") -> ReplayResult:
-    """Replay a log into the server at ``endpoint`` (or an embedded one); return the map."""
+                  robot: str = "carmen", grid: str = "lattice") -> ReplayResult:
+    """Replay a log into the server at ``endpoint`` (or an embedded one); return the map.
+    ``grid``: where the laser ISMs are cast (:func:`sogm_service.sim.fleet.replay_scans`)."""
     from sogm_service.adapters.carmen import CarmenStats, read_carmen
 
     stats = CarmenStats()
@@ -181,7 +186,7 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
                            + ("--limit is 0; " if limit is not None and limit <= 0 else "")
                            + stats.summary())
     if endpoint is not None:
-        return _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats)
+        return _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats, grid)
     from sogm_service.service.config import ServiceConfig
     from sogm_service.service.server import MapServer
     from sogm_service.service.session import free_tcp_endpoint
@@ -191,18 +196,18 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
                                            "zenoh": {"listen": [endpoint]}})
     server = MapServer(config).start()
     try:
-        result = _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats)
+        result = _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats, grid)
     finally:
         server.stop()
     return result
 
 
 def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: float,
-                 speed: float, robot: str, stats: Any) -> ReplayResult:
+                 speed: float, robot: str, stats: Any, grid: str = "lattice") -> ReplayResult:
     from sogm_service.service.client import MapClient
     from sogm_service.sim.fleet import replay_scans
 
-    replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed)
+    replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed, grid=grid)
     with MapClient.connect(endpoint, map_name=map_name, timeout=30.0) as client:
         fused = _wait_fused(client, len(scans))
         layer = f"{robot}/laser/obstacle"

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.core import logodds
+from sogm_service.core import forget, logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, wrap_angle
 from sogm_service.core.resample import (
     Interp,
@@ -65,6 +65,9 @@ class Tile:
     last_used: float = field(default_factory=time.monotonic)
     evicted: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    # Decaying layers (:mod:`sogm_service.core.forget`): layer index -> the time up to which
+    # its cells are decayed (absent: the tile's ``stamp``).  Guarded by ``lock``.
+    decay: dict[int, float] = field(default_factory=dict)
 
     @property
     def dirty(self) -> bool:
@@ -86,6 +89,7 @@ class TileSnapshot:
     stamp: float
     version: int
     dirty: bool
+    decay: dict[str, float] = field(default_factory=dict)  # decaying layer -> decayed up to
 
 
 Owner = Callable[[TileIndex], bool]
@@ -111,6 +115,10 @@ class TiledMap:
         # Versions come from one map-wide clock, never per tile: a tile evicted and loaded
         # back must not reuse version numbers that an in-flight save may still confirm.
         self._clock = itertools.count(1)
+        self._forget = forget.ForgetRules()
+        self._half_lives: dict[int, float | None] = {}
+        self._time = -math.inf  # the map's clock: the latest stamp fused or loaded
+        self._time_lock = threading.Lock()
 
     def tick(self) -> int:
         """The next version number (strictly increasing over the map's lifetime)."""
@@ -175,10 +183,11 @@ class TiledMap:
         if loaded is None:
             self.stored.discard(index)
             return None
-        names, stack, stamp = loaded
+        names, stack, stamp = loaded[0], loaded[1], loaded[2]
         version = self.tick()
         tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
                     saved_version=version)
+        self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)
         self.tiles[index] = tile
         return tile
 
@@ -193,7 +202,8 @@ class TiledMap:
         return data
 
     def insert_tile(self, index: TileIndex, names: list[str], stack: npt.NDArray[np.int16],
-                    stamp: float, saved: bool) -> Tile:
+                    stamp: float, saved: bool,
+                    decay: dict[str, float] | None = None) -> Tile:
         """Put a whole tile in place (from a store or a replica), replacing what was there."""
         t = self.tile_size
         if stack.shape != (len(names), t, t):
@@ -202,6 +212,7 @@ class TiledMap:
             version = self.tick()
             tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
                         saved_version=version if saved else -1)
+            self._adopt_decay(tile, decay)
             old = self.tiles.get(index)
             if old is not None:
                 with old.lock:
@@ -256,7 +267,7 @@ class TiledMap:
     def _snapshot_locked(self, tile: Tile) -> TileSnapshot:
         names, data = self.tile_layers(tile)
         return TileSnapshot(tile.index, names, data.copy(), tile.stamp, tile.version,
-                            tile.dirty)
+                            tile.dirty, {names[k]: t for k, t in sorted(tile.decay.items())})
 
     def _grow(self, tile: Tile, layer: int) -> None:
         have = tile.data.shape[0]
@@ -278,6 +289,7 @@ class TiledMap:
         (:func:`sogm_service.core.resample.tile_patches`).
         """
         lid = self.layer_id(layer, create=True)
+        self.advance_clock(stamp)
         touched = []
         for part in tile_patches(inc, geometry, self.lattice, interp, owned):
             index, (u0, v0, w, h), patch = part.index, part.block, part.patch
@@ -292,6 +304,7 @@ class TiledMap:
                     if tile.evicted:
                         continue
                     self._grow(tile, lid)
+                    self._decay_for_write(tile, lid, stamp)
                     logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch,
                                          self.limits)
                     tile.version = self.tick()
@@ -301,21 +314,24 @@ class TiledMap:
         return touched
 
     # -- reading --------------------------------------------------------------------------
-    def mosaic(self, box: tuple[int, int, int, int],
-               layer_ids: list[int]) -> npt.NDArray[np.int16]:
-        """``(len(layer_ids), h, w)`` log-odds of the map-cell box ``(c0, r0, w, h)``."""
+    def mosaic(self, box: tuple[int, int, int, int], layer_ids: list[int],
+               now: float | None = None) -> npt.NDArray[np.int16]:
+        """``(len(layer_ids), h, w)`` log-odds of the map-cell box ``(c0, r0, w, h)``;
+        decaying layers as they are at ``now`` (default: :meth:`now`)."""
         c0, r0, w, h = box
+        now = self.now() if now is None else now
         t = self.tile_size
         out = np.zeros((len(layer_ids), h, w), dtype=np.int16)
         for j in range(r0 // t, (r0 + h - 1) // t + 1):
             for i in range(c0 // t, (c0 + w - 1) // t + 1):
                 tile = self.get_tile((i, j))  # loads an evicted tile back; a read is a use
                 if tile is not None:
-                    self._copy_block(tile, (i, j), box, layer_ids, out)
+                    self._copy_block(tile, (i, j), box, layer_ids, out, now)
         return out
 
     def _copy_block(self, tile: Tile, index: TileIndex, box: tuple[int, int, int, int],
-                    layer_ids: list[int], out: npt.NDArray[np.int16]) -> None:
+                    layer_ids: list[int], out: npt.NDArray[np.int16],
+                    now: float = -math.inf) -> None:
         c0, r0, w, h = box
         t = self.tile_size
         tc, tr = index[0] * t, index[1] * t
@@ -327,9 +343,11 @@ class TiledMap:
                 if lid < data.shape[0]:
                     out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = \
                         data[lid, b0 - tr:b1 - tr, a0 - tc:a1 - tc]
+                    self._decay_for_read(tile, lid, out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0],
+                                         now)
 
     def sample(self, window: GridGeometry, layers: list[str],
-               interp: Interp = "biodds") -> npt.NDArray[np.int16]:
+               interp: Interp = "biodds", now: float | None = None) -> npt.NDArray[np.int16]:
         """``(len(layers), H, W)`` fixed log-odds of the map resampled into ``window``.
 
         Unknown area (no tile, or outside every ISM so far) is 0.  Raises ``KeyError`` for a
@@ -342,7 +360,7 @@ class TiledMap:
         c0, r0 = math.floor(xmin / res) - 1, math.floor(ymin / res) - 1
         c1, r1 = math.ceil(xmax / res) + 1, math.ceil(ymax / res) + 1
         box = (c0, r0, c1 - c0, r1 - r0)
-        src = self.mosaic(box, ids)
+        src = self.mosaic(box, ids, now)
         src_geom = GridGeometry(res, box[2], box[3], Pose2D(c0 * res, r0 * res, 0.0))
         if _is_aligned(src_geom, window):
             du, dv = _cell_offset(src_geom, window)
@@ -358,6 +376,64 @@ class TiledMap:
         ii = [i for i, _ in known]
         jj = [j for _, j in known]
         return (min(ii) * span, min(jj) * span, (max(ii) + 1) * span, (max(jj) + 1) * span)
+
+    # -- forgetting (issue 19; :mod:`sogm_service.core.forget`) ----------------------------
+    def set_forget(self, rules: dict[str, float] | forget.ForgetRules) -> None:
+        """Which layers decay toward unknown, with which half-life (seconds): ``{layer name
+        or fnmatch pattern: half-life}``.  Set it before the map is used."""
+        self._forget = rules if isinstance(rules, forget.ForgetRules) \
+            else forget.ForgetRules(rules)
+        self._half_lives = {}
+
+    def half_life(self, lid: int) -> float | None:
+        """The half-life of layer index ``lid`` (None: it never forgets)."""
+        try:
+            return self._half_lives[lid]
+        except KeyError:
+            h = self._forget.half_life(self.layers[lid]) if self._forget else None
+            self._half_lives[lid] = h
+            return h
+
+    def now(self) -> float:
+        """The map's clock: the latest ISM stamp fused (or tile stamp loaded); reads decay
+        to it by default.  ``-inf`` before any."""
+        return self._time
+
+    def advance_clock(self, t: float) -> None:
+        """Move the map's clock forward to ``t`` (never back): e.g. a service that wants an
+        idle map to keep forgetting advances it with its own clock."""
+        if t > self._time:
+            with self._time_lock:
+                if t > self._time:
+                    self._time = float(t)
+
+    def _adopt_decay(self, tile: Tile, decay: dict[str, float] | None) -> None:
+        """A loaded or inserted tile's decay stamps (names) in this map's layer indices."""
+        self.advance_clock(tile.stamp)
+        for name, t in (decay or {}).items():
+            lid = self.layer_id(name, create=True)
+            tile.decay[lid] = float(t)
+            self.advance_clock(t)
+
+    def _decay_for_write(self, tile: Tile, lid: int, stamp: float) -> None:
+        """Before an ISM of ``stamp`` is added (the caller holds ``tile.lock``)."""
+        h = self.half_life(lid)
+        if h is None:
+            return
+        t_d = tile.decay.setdefault(lid, tile.stamp)
+        if stamp - t_d >= forget.QUANTUM * h:
+            forget.decay_in_place(tile.data[lid], forget.decay_factor(stamp - t_d, h))
+            tile.decay[lid] = stamp
+
+    def _decay_for_read(self, tile: Tile, lid: int, block: npt.NDArray[np.int16],
+                        now: float) -> None:
+        """A copied block of a decaying layer as it is at ``now`` (``tile.lock`` held)."""
+        h = self.half_life(lid)
+        if h is None:
+            return
+        f = forget.decay_factor(now - tile.decay.get(lid, tile.stamp), h)
+        if f != 1.0:
+            block[...] = forget.decayed(block, f)
 
 
 def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:

@@ -18,8 +18,9 @@ TileIndex = tuple[int, int]
 Fixed = npt.NDArray[np.int16]
 """Fixed-point log-odds (:mod:`sogm_service.core.logodds`)."""
 
-LoaderResult = tuple[list[str], Fixed, float]
-"""A tile brought back from storage: ``(layer names, (N, T, T) stack, stamp)``."""
+LoaderResult = tuple[list[str], Fixed, float] | tuple[list[str], Fixed, float, dict[str, float]]
+"""A tile brought back from storage: ``(layer names, (N, T, T) stack, stamp)``, and for a tile
+with decaying layers its decay stamps ``{layer: decayed up to}`` (:mod:`.forget`)."""
 
 Loader = Callable[[int, int], LoaderResult | None]
 """Brings back tile ``(i, j)`` that is not resident, or None when there is none."""

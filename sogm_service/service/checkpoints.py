@@ -74,6 +74,7 @@ class Checkpointer:
         tiled.stored = set(index)
         for info in index.values():  # layers are known before any tile is loaded
             tiled.adopt_layers(info.header.layers)
+            tiled.advance_clock(info.header.stamp)  # decaying layers read at the map's time
         for problem in self.store.problems:
             self.stats.count("store_problems")
             log.warning("tile store: skipped %s: %s", problem.path, problem.reason)
@@ -153,7 +154,7 @@ class Checkpointer:
         """A tile's snapshot (already a copy: the paper's double buffer) to the writer."""
         assert self.writer is not None
         self.writer.submit(snap.index[0], snap.index[1], snap.layers, snap.data, snap.stamp,
-                           token=snap.version)
+                           token=snap.version, decay=snap.decay)
 
     def _saved(self, index: TileIndex, token: Any) -> None:
         if self._tiled is not None and isinstance(token, int):

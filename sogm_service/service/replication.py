@@ -60,7 +60,7 @@ class Replication:
             store = self.tiles.store
             return store.read_bytes(*index) if store is not None else None
         header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
-                             self._plane)
+                             self._plane, snap.decay)
         return tile_to_bytes(header, snap.data)
 
     def replicate(self, session: zenoh.Session, timeout: float = 30.0) -> int:
@@ -89,7 +89,7 @@ class Replication:
                 continue
             h = tile.header
             self.tiled.insert_tile(h.index, list(h.layers), np.array(tile.data), h.stamp,
-                                   saved=False)
+                                   saved=False, decay=dict(h.decay))
             copied += 1
         self.stats.count("replica_tiles_copied", copied)
         log.info("replication: copied %d tiles from a live server", copied)

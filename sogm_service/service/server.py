@@ -72,6 +72,7 @@ class MapServer:
         self.tiles = Checkpointer(config, self.stats, keep=self.fleet.regions_of_interest)
         self.map = TiledMap(config.map.name, config.map.frame, lattice, config.map.eps0,
                             loader=self.tiles.load)
+        self.map.set_forget(config.map.forget)
         self.matcher = Matcher(config, self.stats)
         self.replication = Replication(config, self.map, self.tiles, self.stats)
         self.fusers = FuseWorkers(self.map, config.limits.fuse_workers)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +34,7 @@ import numpy as np
 
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.adapters.laser import encode_occupancy_i8, encode_prob_u8, encode_prob_u8_v2
+from sogm_service.adapters.laser_lattice import ISM_GRIDS, scan_ism_on_lattice
 from sogm_service.core.geometry import Pose2D
 from sogm_service.service.client import MapClient
 from sogm_service.sim.robots import SimStep, simulate
@@ -115,7 +116,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               sensors: Sequence[Sensor] | None = None, realtime: bool = True,
               encoding: str = "occupancy_i8", ism_prefix: str = "ism", pose_prefix: str = "pose",
               stop: threading.Event | None = None, speed: float = 1.0,
-              zenoh_configs: Mapping[str, Path] | None = None) -> FleetStats:
+              zenoh_configs: Mapping[str, Path] | None = None,
+              observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = ()) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
@@ -124,7 +126,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     out as fast as they are simulated (tests, bulk loading).  Stamps are wall-clock seconds of
     the run's start plus simulated time.  ``stop`` ends the run early.  ``zenoh_configs`` gives
     robots their own Zenoh config (``robot1`` -> its JSON5, e.g. from ``sogm-service certs``)
-    instead of a plain connection to ``endpoint``.  Blocks until done.
+    instead of a plain connection to ``endpoint``.  ``observers`` add ISMs to each step
+    (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -140,6 +143,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
                              sensors=sensors):
             if stop is not None and stop.is_set():
                 break
+            for observe in observers:
+                step.isms.extend(observe(step))
             if realtime:
                 _sleep_until(t_wall0 + step.stamp / speed, stop)
             links[step.robot].publish(step, t_epoch0 + step.stamp, stats)
@@ -158,14 +163,22 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
                  sensor: str = "laser", layer: str = "obstacle", resolution: float = 0.05,
                  usable_range: float = DEFAULT_USABLE_RANGE, speed: float = 1.0,
                  encoding: str = "occupancy_i8", ism_prefix: str = "ism",
-                 pose_prefix: str = "pose", stop: threading.Event | None = None) -> FleetStats:
+                 pose_prefix: str = "pose", stop: threading.Event | None = None,
+                 grid: str = "lattice") -> FleetStats:
     """Publish recorded scans (e.g. :func:`sogm_service.adapters.carmen.read_carmen`) as one robot.
 
     Per scan: the laser pose on ``pose/<robot>`` and its ISM
     (:func:`~sogm_service.adapters.carmen.scan_ism`) on ``ism/<robot>/<sensor>/<layer>``, stamped
     with the log's own stamps.  ``speed`` scales the log's pace (2.0 = twice as fast; 0 = as fast as
     possible).  The backbone of ``sogm-service replay carmen FILE``.
+
+    ``grid = "lattice"`` (default) casts each ISM on the map's cells at ``resolution``
+    (:func:`~sogm_service.adapters.laser_lattice.scan_ism_on_lattice`: the server adds it
+    without resampling, so walls and beams stay as sharp as the scan; ``resolution`` must be the
+    map's); ``"sensor"`` publishes the sensor-aligned grid the server resamples (issue 19).
     """
+    if grid not in ISM_GRIDS:
+        raise ValueError(f"unknown ISM grid {grid!r}; use one of {ISM_GRIDS}")
     stats = FleetStats()
     t_wall0 = time.monotonic()
     link = RobotLink(robot, endpoint, ism_prefix=ism_prefix, pose_prefix=pose_prefix,
@@ -178,7 +191,8 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
             stamp0 = scan.stamp if stamp0 is None else stamp0
             if speed > 0:
                 _sleep_until(t_wall0 + (scan.stamp - stamp0) / speed, stop)
-            geom, p = scan_ism(scan, resolution, usable_range)
+            geom, p = (scan_ism_on_lattice(scan, resolution, usable_range) if grid == "lattice"
+                       else scan_ism(scan, resolution, usable_range))
             link.publish_pose(scan.pose, scan.stamp, stats)
             link.publish_ism(SensorIsm(layer, geom, p, sensor), scan.stamp, stats)
             stats.steps += 1

@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.adapters.laser import laser_ism
+from sogm_service.adapters.laser_lattice import laser_ism_on_lattice
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.sim.worlds import World
 
@@ -101,6 +102,9 @@ class TiltedLaser:
     p_free: float = 0.3
     p_occ: float = 0.8
     hit_width_cells: int = 1
+    # "sensor": a sensor-aligned ISM the server resamples; "lattice": cast on the map's cells
+    # (``resolution`` must be the map's; no resampling, issue 19).  The demo uses "lattice".
+    grid: str = "sensor"
 
     @property
     def floor_range(self) -> float:
@@ -133,9 +137,10 @@ class TiltedLaser:
     def isms(self, world: World, true_pose: Pose2D, reported_pose: Pose2D,
              rng: np.random.Generator) -> list[SensorIsm]:
         ranges, angles = self.scan(world, true_pose.compose(self.mount), rng)
-        geom, p = laser_ism(ranges, angles, reported_pose.compose(self.mount), self.resolution,
-                            self.usable_range, p_free=self.p_free, p_occ=self.p_occ,
-                            hit_width_cells=self.hit_width_cells)
+        cast = laser_ism_on_lattice if self.grid == "lattice" else laser_ism
+        geom, p = cast(ranges, angles, reported_pose.compose(self.mount), self.resolution,
+                       self.usable_range, p_free=self.p_free, p_occ=self.p_occ,
+                       hit_width_cells=self.hit_width_cells)
         return [SensorIsm(self.layer, geom, p, self.name)]
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Final
 
 from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
-from sogm_service.core.tiletypes import TileIndex
+from sogm_service.core.tiletypes import LoaderResult, TileIndex
 from sogm_service.store.format import (
     DEFAULT_LEVEL,
     SUFFIX,
@@ -160,9 +160,9 @@ class DirectoryStore:
                                    f"{SUFFIX}")
 
     def header_for(self, i: int, j: int, layers: Sequence[str],
-                   stamp: float) -> TileHeader:
+                   stamp: float, decay: dict[str, float] | None = None) -> TileHeader:
         """The header this store writes for tile ``(i, j)``."""
-        return tile_header(self.expect, i, j, layers, stamp, self.plane)
+        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay)
 
     # -- index ----------------------------------------------------------------------------
     def index(self) -> dict[TileIndex, TileFileInfo]:
@@ -223,7 +223,7 @@ class DirectoryStore:
         got = self._read_valid(i, j)
         return None if got is None else got[1]
 
-    def loader(self, i: int, j: int) -> tuple[list[str], Fixed, float] | None:
+    def loader(self, i: int, j: int) -> LoaderResult | None:
         """:meth:`load` in the shape of :data:`sogm_service.core.tiles.Loader`."""
         tile = self.load(i, j)
         return None if tile is None else tile.as_loader_result()
@@ -249,9 +249,10 @@ class DirectoryStore:
 
     # -- writing --------------------------------------------------------------------------
     def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
-              stamp: float) -> TileFileInfo:
-        """Encode and atomically write one tile (synchronous; :class:`TileWriter` runs this)."""
-        header = self.header_for(i, j, layers, stamp)
+              stamp: float, decay: dict[str, float] | None = None) -> TileFileInfo:
+        """Encode and atomically write one tile (synchronous; :class:`TileWriter` runs this).
+        ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.forget`)."""
+        header = self.header_for(i, j, layers, stamp, decay)
         return self._write_blob(header, tile_to_bytes(header, data, self.level))
 
     def write_bytes(self, blob: bytes) -> TileFileInfo:

@@ -51,7 +51,7 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeoPoint, LocalTangentPlane
-from sogm_service.core.tiletypes import TileIndex, tile_token
+from sogm_service.core.tiletypes import LoaderResult, TileIndex, tile_token
 from sogm_service.wire.errors import TileFormatError
 
 MAGIC: Final = b"SOGMTILE"
@@ -91,6 +91,9 @@ class TileHeader:
     scale: float = logodds.SCALE
     version: int = FORMAT_VERSION
     written_unix: float = 0.0
+    # Optional (issue 19, additive in version 1): decaying layer -> the time up to which its
+    # cells are decayed.  Written only when non-empty; readers before it ignore the field.
+    decay: tuple[tuple[str, float], ...] = ()
 
     @property
     def index(self) -> TileIndex:
@@ -116,8 +119,12 @@ class StoredTile:
     header: TileHeader
     data: Fixed
 
-    def as_loader_result(self) -> tuple[list[str], Fixed, float]:
-        """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.core.tiles.Loader`."""
+    def as_loader_result(self) -> LoaderResult:
+        """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.core.tiles.Loader`
+        (with the decay stamps as a fourth item when the tile has any)."""
+        if self.header.decay:
+            return (list(self.header.layers), self.data, self.header.stamp,
+                    dict(self.header.decay))
         return list(self.header.layers), self.data, self.header.stamp
 
 
@@ -132,7 +139,8 @@ class Expectation:
 
 
 def tile_header(expect: Expectation, i: int, j: int, layers: Sequence[str], stamp: float,
-                plane: LocalTangentPlane | None = None) -> TileHeader:
+                plane: LocalTangentPlane | None = None,
+                decay: dict[str, float] | None = None) -> TileHeader:
     """The header of tile ``(i, j)`` of the map ``expect`` describes; with a local tangent
     ``plane`` (the map's datum) it carries the geodetic position of the tile's origin."""
     datum = None
@@ -141,7 +149,8 @@ def tile_header(expect: Expectation, i: int, j: int, layers: Sequence[str], stam
         datum = plane.to_geodetic(i * span, j * span)
     return TileHeader(map_name=expect.map_name, frame=expect.frame or "map", i=i, j=j,
                       resolution=expect.resolution, tile_size=expect.tile_size,
-                      layers=tuple(layers), stamp=float(stamp), datum=datum)
+                      layers=tuple(layers), stamp=float(stamp), datum=datum,
+                      decay=tuple(sorted((str(k), float(v)) for k, v in (decay or {}).items())))
 
 
 def resolution_token(resolution: float) -> str:
@@ -196,6 +205,8 @@ def _header_json(header: TileHeader, level: int, raw_len: int, payload: bytes) -
         "payload_len": len(payload), "payload_crc32": zlib.crc32(payload),
         "written_unix": header.written_unix or time.time(),
     }
+    if header.decay:
+        fields["decay"] = dict(header.decay)
     return json.dumps(fields, separators=(",", ":"), allow_nan=False).encode()
 
 
@@ -250,9 +261,26 @@ def _header_from_fields(f: dict[str, Any]) -> TileHeader:
                                                   float(datum["longitude"]),
                                                   float(datum["altitude"])),
         scale=float(_typed(f, "scale", (int, float))), version=FORMAT_VERSION,
-        written_unix=float(f.get("written_unix", 0.0)))
+        written_unix=float(f.get("written_unix", 0.0)), decay=_decay_field(f, layers))
     _check_header_consistency(header, f)
     return header
+
+
+def _decay_field(f: dict[str, Any], layers: list[str]) -> tuple[tuple[str, float], ...]:
+    """The optional ``decay`` field: ``{layer of this tile: finite stamp}``."""
+    decay = f.get("decay")
+    if decay is None:
+        return ()
+    if not isinstance(decay, dict) or len(decay) > len(layers):
+        raise TileFormatError("header 'decay' must map this tile's layers to stamps")
+    out = []
+    for name, t in decay.items():
+        if name not in layers or isinstance(t, bool) or not isinstance(t, (int, float)) \
+                or not math.isfinite(t):
+            raise TileFormatError(f"header 'decay' entry {name!r}: {t!r} is not a stamp of "
+                                  "one of the tile's layers")
+        out.append((name, float(t)))
+    return tuple(sorted(out))
 
 
 def _typed(fields: dict[str, Any], key: str, kind: type | tuple[type, ...]) -> Any:

@@ -53,7 +53,8 @@ class TileStore(Protocol):
         """Find every stored tile (checking headers, setting bad ones aside)."""
         ...
 
-    def header_for(self, i: int, j: int, layers: Sequence[str], stamp: float) -> TileHeader:
+    def header_for(self, i: int, j: int, layers: Sequence[str], stamp: float,
+                   decay: dict[str, float] | None = None) -> TileHeader:
         """The header this store writes for tile ``(i, j)`` (map, frame, datum, ...)."""
         ...
 
@@ -70,7 +71,7 @@ class TileStore(Protocol):
         ...
 
     def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
-              stamp: float) -> TileFileInfo:
+              stamp: float, decay: dict[str, float] | None = None) -> TileFileInfo:
         """Encode and atomically store one tile."""
         ...
 

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from sogm_service.core.tiletypes import TileIndex
+from sogm_service.core.tiletypes import LoaderResult, TileIndex
 from sogm_service.store.format import Fixed, check_stack
 from sogm_service.store.protocol import TileStore
 
@@ -24,6 +24,7 @@ class _Job:
     data: Fixed
     stamp: float
     token: Any
+    decay: dict[str, float] | None = None
 
 
 @dataclass
@@ -65,12 +66,13 @@ class TileWriter:
         self._thread.start()
 
     def submit(self, i: int, j: int, layers: list[str] | tuple[str, ...], data: Fixed,
-               stamp: float, token: Any = None) -> None:
+               stamp: float, token: Any = None,
+               decay: dict[str, float] | None = None) -> None:
         """Queue a snapshot of tile ``(i, j)``; ``data`` must be a private copy (it is made
         read-only here, so an accidental live array fails loudly instead of tearing)."""
         check_stack(tuple(layers), data, self.store.expect.tile_size)
         data.setflags(write=False)
-        job = _Job((i, j), tuple(layers), data, float(stamp), token)
+        job = _Job((i, j), tuple(layers), data, float(stamp), token, dict(decay or {}))
         with self._cond:
             if self._closing:
                 raise RuntimeError("tile writer is closed")
@@ -89,7 +91,7 @@ class TileWriter:
             return (i, j) in self._pending or (self._busy is not None
                                                and self._busy.index == (i, j))
 
-    def loader(self, i: int, j: int) -> tuple[list[str], Fixed, float] | None:
+    def loader(self, i: int, j: int) -> LoaderResult | None:
         """Like :meth:`TileStore.loader`, but a snapshot still waiting for disk wins, so a tile
         evicted right after its submit comes back with its newest content (a writable copy)."""
         with self._cond:
@@ -97,6 +99,8 @@ class TileWriter:
             if job is None and self._busy is not None and self._busy.index == (i, j):
                 job = self._busy
         if job is not None:
+            if job.decay:
+                return list(job.layers), job.data.copy(), job.stamp, dict(job.decay)
             return list(job.layers), job.data.copy(), job.stamp
         return self.store.loader(i, j)
 
@@ -132,7 +136,8 @@ class TileWriter:
     def _write(self, job: _Job) -> None:
         t0 = time.perf_counter()
         try:
-            info = self.store.write(job.index[0], job.index[1], job.layers, job.data, job.stamp)
+            info = self.store.write(job.index[0], job.index[1], job.layers, job.data, job.stamp,
+                                    job.decay or None)
         except Exception as exc:  # disk full, permissions: report, never kill the thread
             self.stats.errors += 1
             self.stats.last_error = f"tile {job.index}: {exc}"

@@ -1,0 +1,93 @@
+"""Layers that forget: decay toward unknown with a half-life, applied lazily (issue 19, item 6).
+
+The authors' original server had a "forget" (``l *= factor``, :func:`logodds.forget`) run over
+the whole map.  Here a layer may have a **half-life** ``h`` (seconds): evidence older by ``dt``
+counts ``0.5 ** (dt / h)`` as much, so a moving person's old positions fade to unknown while
+walls (layers without a half-life) stay.  Nothing sweeps the map: each tile keeps, per decaying
+layer, the time up to which its cells are decayed (``Tile.decay``), and the elapsed time since
+then is applied as one multiplication when the tile is touched
+(:class:`sogm_service.core.tiles.TiledMap`):
+
+* **write** (an ISM of stamp ``t`` fused into the tile): if ``t - t_d >= h / 32`` the tile's
+  layer is decayed in place by ``0.5 ** ((t - t_d) / h)`` and ``t_d = t``; then the ISM is
+  added.  Closer writes add without decaying (``t_d`` stays), so a tile written at 4 Hz is
+  multiplied at most every ``h / 32``: the cost is bounded and rounding cannot stall the decay.
+  Evidence added in such a window is decayed from ``t_d``, i.e. up to ``2 ** (-1/32)`` (2.1 %)
+  more than exactly.  An ISM older than ``t_d`` (another robot's, late) is added undecayed.
+* **read** (a sub-map, a mosaic, scan matching) at time ``now``: the copy is decayed by
+  ``0.5 ** ((now - t_d) / h)``; the tile itself is left as it is.  So reads never change the
+  map: its state is a function of the ISMs each tile received, in their order, whatever the
+  queries did in between (a query between two ISMs cannot change what the second one adds to).
+
+Time is never the wall clock inside the core: writes use the ISM's stamp, reads a ``now``
+passed in, by default the map's clock (the latest stamp fused or loaded,
+:meth:`TiledMap.now`), so the results are exact functions of the stamps.
+
+**Rounding** (int16 fixed point, 1/1000 nat): ``decayed(l) = trunc(l * f)`` with ``f`` and the
+product in float64, truncated toward zero: every decay moves a cell toward unknown (never past
+it) and a cell reaches exactly 0 (unknown) in finitely many steps; a read gives what a write at
+the same time would leave before adding.
+
+Which layers forget: :class:`ForgetRules`, ``{pattern: half-life}`` matched against layer names
+(``fnmatch``; an exact name first, then patterns in the order given).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from collections.abc import Mapping
+
+import numpy as np
+import numpy.typing as npt
+
+QUANTUM = 1.0 / 32.0
+"""A tile's layer is decayed in place on write at most every ``QUANTUM * half_life``."""
+
+Fixed = npt.NDArray[np.int16]
+
+
+def decay_factor(dt: float, half_life: float) -> float:
+    """``0.5 ** (dt / half_life)``; 1.0 for ``dt <= 0`` (no decay backwards in time)."""
+    if not (half_life > 0 and math.isfinite(half_life)):
+        raise ValueError(f"half-life must be positive and finite, got {half_life!r}")
+    if not dt > 0:
+        return 1.0
+    return float(0.5 ** (dt / half_life))
+
+
+def decayed(state: npt.NDArray[np.int16], factor: float) -> Fixed:
+    """A new array: ``trunc(state * factor)`` in float64 (module docstring: rounding)."""
+    if not 0.0 <= factor <= 1.0:
+        raise ValueError(f"decay factor must lie in [0, 1], got {factor!r}")
+    return np.trunc(state.astype(np.float64) * factor).astype(np.int16)
+
+
+def decay_in_place(state: npt.NDArray[np.int16], factor: float) -> None:
+    """:func:`decayed`, written back into ``state`` (a no-op for ``factor == 1``)."""
+    if factor != 1.0:
+        np.copyto(state, decayed(state, factor))
+
+
+class ForgetRules:
+    """Which layer forgets with which half-life: ``{exact name or fnmatch pattern: seconds}``."""
+
+    def __init__(self, rules: Mapping[str, float] | None = None) -> None:
+        self.rules: dict[str, float] = {}
+        for pattern, half_life in (rules or {}).items():
+            if not pattern:
+                raise ValueError("an empty layer pattern")
+            decay_factor(1.0, float(half_life))  # validates
+            self.rules[pattern] = float(half_life)
+
+    def __bool__(self) -> bool:
+        return bool(self.rules)
+
+    def half_life(self, layer: str) -> float | None:
+        """The layer's half-life in seconds, or None when it never forgets."""
+        if layer in self.rules:
+            return self.rules[layer]
+        for pattern, half_life in self.rules.items():
+            if fnmatch.fnmatchcase(layer, pattern):
+                return half_life
+        return None

@@ -1,0 +1,354 @@
+"""Layers that forget (issue 19, item 6): decay toward unknown with a half-life, lazily per tile.
+
+Expected values are computed here from the rule (:mod:`sogm_service.core.forget`): a read at
+``now`` gives ``trunc(l * 0.5 ** ((now - t_d) / h))`` (float64, toward zero); a write at ``t``
+first decays the tile's layer in place by ``0.5 ** ((t - t_d) / h)`` when ``t - t_d >= h / 32``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from sogm_service.core import forget
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.tiles import TiledMap
+from sogm_service.service.config import ServiceConfig
+from sogm_service.store.directory import DirectoryStore
+from sogm_service.store.format import (
+    FORMAT_VERSION,
+    Expectation,
+    parse_header,
+    read_tile_file,
+    tile_from_bytes,
+    tile_header,
+    tile_to_bytes,
+)
+from sogm_service.wire.errors import TileFormatError
+
+H = 10.0  # half-life (s) of "people"
+BOX = (0, 0, 4, 4)
+GOLDEN = Path(__file__).parent / "data" / "sogm_golden_r0.050_t16_i+0003_j-0002.tile"
+
+
+def new_map(loader=None) -> TiledMap:  # type: ignore[no-untyped-def]
+    tiled = TiledMap("m", "map", TileLattice(1.0, 16), loader=loader)
+    tiled.set_forget({"people": H, "*/carts": 2 * H})
+    return tiled
+
+
+def put(tiled: TiledMap, layer: str, value: int, stamp: float, x: int = 0, y: int = 0) -> None:
+    """One aligned 1x1 ISM of increment ``value`` at cell (x, y) (added exactly, no resampling)."""
+    tiled.fuse(layer, np.array([[value]], dtype=np.int16),
+               GridGeometry(1.0, 1, 1, Pose2D(float(x), float(y), 0.0)), stamp=stamp)
+
+
+def cell(tiled: TiledMap, layer: str, now: float | None = None, x: int = 0, y: int = 0) -> int:
+    return int(tiled.mosaic(BOX, [tiled.layer_id(layer)], now)[0, y, x])
+
+
+def expect(l: int, dt: float, h: float = H) -> int:
+    return math.trunc(l * 0.5 ** (dt / h)) if dt > 0 else l
+
+
+def test_rules_match_names_then_patterns() -> None:
+    rules = forget.ForgetRules({"robot1/people": 5.0, "*/people": 30.0})
+    assert rules.half_life("robot1/people") == 5.0
+    assert rules.half_life("robot2/people") == 30.0
+    assert rules.half_life("robot2/people2") is None
+    with pytest.raises(ValueError):
+        forget.ForgetRules({"x": 0.0})
+    with pytest.raises(ValueError):
+        forget.ForgetRules({"x": math.inf})
+
+
+def test_decay_rounds_toward_zero() -> None:
+    a = np.array([1000, -1000, 3, -3, 1, 0, 16000], dtype=np.int16)
+    f = 0.5 ** 1.5
+    assert forget.decayed(a, f).tolist() == [353, -353, 1, -1, 0, 0, 5656]
+    assert forget.decay_factor(-1.0, H) == 1.0 and forget.decay_factor(H, H) == 0.5
+
+
+def test_a_read_decays_by_elapsed_half_lives_and_other_layers_stay() -> None:
+    tiled = new_map()
+    put(tiled, "people", 1000, 100.0)
+    put(tiled, "people", -1000, 100.0, x=1)
+    put(tiled, "walls", 1000, 100.0)
+    put(tiled, "robot1/carts", 1000, 100.0)
+    assert cell(tiled, "people", 110.0) == 500
+    assert cell(tiled, "people", 115.0) == expect(1000, 15.0) == 353
+    assert cell(tiled, "people", 115.0, x=1) == -353
+    assert cell(tiled, "people", 100.0) == 1000
+    assert cell(tiled, "people", 90.0) == 1000  # never backwards
+    assert cell(tiled, "walls", 1e6) == 1000
+    assert cell(tiled, "robot1/carts", 120.0) == 500  # the pattern's 20 s half-life
+    assert cell(tiled, "people", 100.0 + 40 * H) == 0  # exactly unknown in the end
+
+
+def test_reads_default_to_the_map_clock_the_latest_stamp() -> None:
+    tiled = new_map()
+    put(tiled, "people", 1000, 100.0)
+    assert tiled.now() == 100.0
+    put(tiled, "walls", 7, 120.0, x=3)  # another layer's ISM moves the clock too
+    assert tiled.now() == 120.0
+    assert cell(tiled, "people") == 250
+    window = GridGeometry(1.0, 2, 2, Pose2D(0.0, 0.0, 0.0))
+    assert tiled.sample(window, ["people"])[0, 0, 0] == 250
+    assert tiled.sample(window, ["people"], now=110.0)[0, 0, 0] == 500
+    tiled.advance_clock(130.0)
+    assert cell(tiled, "people") == 125
+    tiled.advance_clock(50.0)  # never back
+    assert tiled.now() == 130.0
+
+
+def test_a_write_decays_the_tile_in_place_then_adds() -> None:
+    tiled = new_map()
+    put(tiled, "people", 1000, 100.0)
+    put(tiled, "people", 400, 100.0, x=2)
+    put(tiled, "people", 200, 110.0)
+    snap = tiled.snapshot((0, 0))
+    assert snap is not None
+    lid = snap.layers.index("people")
+    assert snap.data[lid, 0, 0] == 500 + 200
+    assert snap.data[lid, 0, 2] == 200  # the whole tile's layer was decayed, not the ISM's cell
+    assert snap.decay == {"people": 110.0}
+    assert cell(tiled, "people", 120.0) == 350
+    assert cell(tiled, "people", 120.0, x=2) == 100
+
+
+def test_writes_closer_than_the_quantum_add_without_decaying() -> None:
+    tiled = new_map()
+    put(tiled, "people", 1000, 100.0)
+    put(tiled, "people", 10, 100.0 + 0.9 * forget.QUANTUM * H)  # within h/32: no multiply
+    assert cell(tiled, "people", 100.0 + 0.9 * forget.QUANTUM * H) \
+        == expect(1010, 0.9 * forget.QUANTUM * H)
+    assert cell(tiled, "people", 110.0) == 505  # decayed from 100: the ISM's stamp moved nothing
+    put(tiled, "people", 10, 100.4)  # 0.4 s >= h/32 = 0.3125 s: multiply, then add
+    snap = tiled.snapshot((0, 0))
+    assert snap is not None
+    assert snap.data[snap.layers.index("people"), 0, 0] == expect(1010, 0.4) + 10 == 992
+    assert snap.decay == {"people": 100.4}
+
+
+def test_an_older_ism_is_added_undecayed() -> None:
+    tiled = new_map()
+    put(tiled, "people", 1000, 110.0)
+    put(tiled, "people", 100, 105.0)  # another robot's, late
+    assert cell(tiled, "people", 110.0) == 1100
+    assert cell(tiled, "people", 120.0) == 550
+
+
+def test_frequent_writes_reach_exactly_unknown() -> None:
+    # 4 Hz ISMs that say nothing about the cell (increment 0 elsewhere in the tile keeps it
+    # touched): truncation cannot stall above 0 the way round-to-nearest would.
+    tiled = new_map()
+    put(tiled, "people", 700, 0.0)
+    for k in range(1, 4 * 200):
+        put(tiled, "people", 0, k / 4.0, x=3, y=3)
+    snap = tiled.snapshot((0, 0))
+    assert snap is not None and snap.data[snap.layers.index("people"), 0, 0] == 0
+    # Round-to-nearest in place at the same steps would stall (the reason for truncation):
+    l = 700.0
+    for _ in range(0, 4 * 200, 8):  # multiplies every h/32 = 2 ISMs... at most every 0.3125 s
+        l = float(np.rint(l * 0.5 ** (0.5 / H)))
+    assert l > 0
+
+
+def test_reads_never_change_the_map_even_interleaved() -> None:
+    rng = np.random.default_rng(1)
+    seq = [(int(rng.integers(-900, 900)), 100.0 + 0.7 * k, int(rng.integers(0, 4)),
+            int(rng.integers(0, 4))) for k in range(60)]
+    quiet, busy = new_map(), new_map()
+    for value, stamp, x, y in seq:
+        put(quiet, "people", value, stamp, x, y)
+        put(busy, "people", value, stamp, x, y)
+        busy.mosaic(BOX, [busy.layer_id("people")], stamp + 3.0)
+        busy.sample(GridGeometry(0.7, 3, 3, Pose2D(0.3, 0.2, 0.4)), ["people"])
+    a, b = quiet.snapshot((0, 0)), busy.snapshot((0, 0))
+    assert a is not None and b is not None
+    assert np.array_equal(a.data, b.data) and a.decay == b.decay
+
+
+def test_concurrent_reads_leave_the_fused_state_bit_identical() -> None:
+    seq = [(300 - 11 * k, 100.0 + 0.5 * k, k % 4, (k // 4) % 4) for k in range(200)]
+    ref, live = new_map(), new_map()
+    for value, stamp, x, y in seq:
+        put(ref, "people", value, stamp, x, y)
+    put(live, "people", 0, 99.0)
+    stop = threading.Event()
+
+    def reader() -> None:
+        lid = live.layer_id("people")
+        while not stop.is_set():
+            live.mosaic(BOX, [lid])
+
+    threads = [threading.Thread(target=reader) for _ in range(2)]
+    for t in threads:
+        t.start()
+    try:
+        for value, stamp, x, y in seq:
+            put(live, "people", value, stamp, x, y)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join()
+    a, b = ref.snapshot((0, 0)), live.snapshot((0, 0))
+    assert a is not None and b is not None
+    assert np.array_equal(a.data, b.data) and a.decay == b.decay
+
+
+# -- persistence ----------------------------------------------------------------------------
+def _store(tmp_path: Path) -> DirectoryStore:
+    return DirectoryStore(tmp_path / "tiles", "m", 1.0, 16)
+
+
+def test_decay_stamps_survive_eviction_and_restart(tmp_path: Path) -> None:
+    store = _store(tmp_path)
+    kept = new_map()
+    evicted = new_map(loader=store.loader)
+    for tiled in (kept, evicted):
+        put(tiled, "people", 1000, 100.0)
+        put(tiled, "walls", 800, 100.0, x=1)
+        put(tiled, "people", 300, 104.0, x=2)
+    evicted.evict((0, 0), before=lambda s: store.write(*s.index, s.layers, s.data, s.stamp,
+                                                       s.decay))
+    assert (0, 0) not in evicted.tiles
+    for now in (104.0, 111.5, 130.0):
+        assert np.array_equal(evicted.mosaic(BOX, [0, 1], now), kept.mosaic(BOX, [0, 1], now))
+    put(kept, "people", 50, 112.0)
+    put(evicted, "people", 50, 112.0)  # loads it back with its decay stamps, then decays
+    a, b = kept.snapshot((0, 0)), evicted.snapshot((0, 0))
+    assert a is not None and b is not None
+    assert np.array_equal(a.data, b.data) and a.decay == b.decay == {"people": 112.0}
+    # A checkpoint, then a restart: a fresh map over the same store reads the same.
+    store.write(*b.index, b.layers, b.data, b.stamp, b.decay)
+    store.close()
+    again = _store(tmp_path)
+    fresh = new_map(loader=again.loader)
+    index = again.index()
+    fresh.stored = set(index)
+    for info in index.values():  # as the service's Checkpointer.attach does
+        fresh.adopt_layers(info.header.layers)
+    assert cell(fresh, "people", 120.0) == cell(kept, "people", 120.0) \
+        == expect(expect(expect(1000, 4.0), 8.0) + 50, 8.0)
+
+
+def test_the_header_field_is_optional_and_additive(tmp_path: Path) -> None:
+    expect_ = Expectation("m", 1.0, 16, "map")
+    data = np.zeros((2, 16, 16), dtype=np.int16)
+    plain = tile_to_bytes(tile_header(expect_, 0, 0, ["people", "walls"], 5.0), data)
+    fields = parse_header(plain)[1]
+    assert "decay" not in fields  # tiles without decaying layers are written as before
+    blob = tile_to_bytes(tile_header(expect_, 0, 0, ["people", "walls"], 5.0,
+                                     decay={"people": 4.5}), data)
+    header, fields, _ = parse_header(blob)
+    assert FORMAT_VERSION == 1 and header.version == 1  # still version 1: old readers read it
+    assert fields["decay"] == {"people": 4.5} and header.decay == (("people", 4.5),)
+    # Everything a version-1 reader requires is there, unchanged.
+    for key in ("map", "frame", "i", "j", "resolution", "tile_size", "layers", "stamp",
+                "scale", "dtype", "shape", "raw_len", "payload_len", "payload_crc32"):
+        assert key in fields
+    loaded = tile_from_bytes(blob, expect_)
+    assert loaded.as_loader_result()[3:] == ({"people": 4.5},)  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("bad", [{"nobody": 1.0}, {"people": "soon"}, {"people": True},
+                                 ["people", 1.0]])
+def test_a_bad_decay_field_is_refused(bad: object) -> None:
+    expect_ = Expectation("m", 1.0, 16, "map")
+    blob = tile_to_bytes(tile_header(expect_, 0, 0, ["people"], 5.0),
+                         np.zeros((1, 16, 16), dtype=np.int16))
+    _, fields, start = parse_header(blob)
+    fields["decay"] = bad
+    meta = json.dumps(fields, separators=(",", ":")).encode()
+    import struct
+    import zlib
+    head = struct.pack("<8sHHI", b"SOGMTILE", 1, 0, len(meta)) + meta
+    forged = head + struct.pack("<I", zlib.crc32(head)) + blob[start:]
+    with pytest.raises(TileFormatError):
+        tile_from_bytes(forged, expect_)
+
+
+def test_golden_v1_tile_loads_and_its_decaying_layers_start_from_its_stamp(
+        tmp_path: Path) -> None:
+    store_dir = tmp_path / "golden"
+    store_dir.mkdir()
+    shutil.copy(GOLDEN, store_dir / GOLDEN.name)
+    golden = read_tile_file(GOLDEN)
+    assert golden.header.decay == ()
+    store = DirectoryStore(store_dir, "golden", 0.05, 16, datum=None)
+    tiled = TiledMap("golden", "map", TileLattice(0.05, 16), loader=store.loader)
+    tiled.set_forget({"pallet": 60.0})
+    tiled.stored = set(store.index())
+    box = (3 * 16, -2 * 16, 16, 16)
+    ids = [tiled.layer_id(n, create=True) for n in golden.header.layers]
+    stamp = golden.header.stamp
+    stored = np.clip(golden.data, *tiled.limits)  # the map clamps what it loads (eps0)
+    at_stamp = tiled.mosaic(box, ids, stamp)
+    assert np.array_equal(at_stamp, stored)
+    later = tiled.mosaic(box, ids, stamp + 60.0)
+    k = list(golden.header.layers).index("pallet")
+    assert np.array_equal(later[k], np.trunc(stored[k] * 0.5).astype(np.int16))
+    others = [n for n in range(3) if n != k]
+    assert np.array_equal(later[others], stored[others])
+
+
+# -- configuration --------------------------------------------------------------------------
+def test_config_takes_half_lives_per_layer_pattern() -> None:
+    cfg = ServiceConfig.model_validate({"map": {"forget": {"*/people": 30.0, "pallet": 600}}})
+    assert cfg.map.forget == {"*/people": 30.0, "pallet": 600.0}
+    assert ServiceConfig().map.forget == {}
+    for bad in ({"people": 0.0}, {"people": -5.0}, {"": 3.0}, {"people": "x"}):
+        with pytest.raises(ValidationError):
+            ServiceConfig.model_validate({"map": {"forget": bad}})
+
+
+# -- the service: config, queries and a restart ---------------------------------------------
+def test_server_forgets_by_stamps_and_across_a_restart(tmp_path: Path) -> None:
+    from sogm_service.service.client import MapClient
+    from tests.conftest import start_server, wait_processed
+
+    sections = {"map": {"resolution": 0.5, "tile_size": 16, "forget": {'"*/people"': H}},
+                "storage": {"directory": str(tmp_path / "tiles")}}
+    occ = np.full((1, 1), 80, dtype=np.int8)  # occupancy_i8 80 -> logit(0.8) = 1386
+    l_occ = round(1000 * math.log(0.8 / 0.2))
+    window = dict(x=2.0, y=2.0, width=4.0, height=4.0, resolution=0.5, interp="nearest",
+                  encoding="logodds_i16", layers=["robot1/people", "robot1/walls"])
+
+    def send(client: MapClient, layer: str, x: float, stamp: float) -> None:
+        client.publish_ism(f"ism/robot1/{layer}", occ, resolution=0.5,
+                           origin=Pose2D(x, 0.0, 0.0), encoding="occupancy_i8", stamp=stamp,
+                           robot="robot1")
+
+    server = start_server(tmp_path, sections)
+    try:
+        with MapClient.connect(server.endpoint, timeout=5.0) as client:
+            send(client, "people", 0.0, 1000.0)
+            send(client, "walls", 0.0, 1000.0)
+            wait_processed(client, 2)
+            send(client, "walls", 1.0, 1010.0)  # the map's clock moves to 1010
+            wait_processed(client, 3)
+            sub = client.submap(**window).data  # type: ignore[arg-type]
+            assert sub[0, 0, 0] == math.trunc(l_occ * 0.5) == 693  # one half-life
+            assert sub[1, 0, 0] == l_occ  # walls never forget
+    finally:
+        assert server.terminate() == 0  # flushes the tiles
+    again = start_server(tmp_path, sections, name="again")
+    try:
+        with MapClient.connect(again.endpoint, timeout=5.0) as client:
+            sub = client.submap(**window).data  # type: ignore[arg-type]
+            assert sub[0, 0, 0] == 693  # read at the stored clock, decayed from its stamp
+            send(client, "people", 3.0, 1020.0)  # decays the tile's layer from 1000 in place
+            wait_processed(client, 1)
+            sub = client.submap(**window).data  # type: ignore[arg-type]
+            assert sub[0, 0, 0] == math.trunc(l_occ * 0.25) == 346
+            assert sub[0, 0, 6] == l_occ
+    finally:
+        assert again.terminate() == 0
