@@ -62,6 +62,7 @@ QUERY_CODES: Final[dict[str, str]] = {
     "unknown_layer": "a requested layer does not exist",
     "window_too_large": "the window needs more cells than the limit",
     "internal_error": "the server failed on this query (a bug)",
+    "no_owner": "no live owner of a tile the window needs answered in time (cluster)",
 }
 """Why a query cannot be answered (:class:`QueryError`)."""
 
