@@ -25,6 +25,9 @@ from sogm_service.service.client import MapClient
 from sogm_service.service.cluster import replay_plan
 from sogm_service.service.fusers import FuseJob
 from sogm_service.service.session import free_tcp_endpoint, loopback_settings, open_session
+from sogm_service.wire import codec
+from sogm_service.wire.errors import DecodeError
+from sogm_service.wire.messages import ErrorReply
 from tests.conftest import ServerProcess, start_server, wait_until
 
 RES = 0.1
@@ -91,11 +94,12 @@ def test_replay_plan_neither_loses_nor_repeats() -> None:
 
 # -- processes ------------------------------------------------------------------------------
 def _member(tmp_path: Path, name: str, peers: list[ServerProcess], servers: int,
-            endpoint: str | None = None, **cluster: Any) -> ServerProcess:
+            endpoint: str | None = None, store: str | None = None,
+            **cluster: Any) -> ServerProcess:
     sections: dict[str, dict[str, Any]] = {
         "map": {"resolution": RES, "tile_size": TILE},
         "cluster": {"enabled": True, "replicas": 2, "fetch_cache_s": 0.0, **cluster},
-        "storage": {"directory": str(tmp_path / f"store-{name}"),
+        "storage": {"directory": str(tmp_path / f"store-{store or name}"),
                     "checkpoint_interval_s": 0.5},
         "zenoh": {"listen": [endpoint or free_tcp_endpoint()],
                   "connect": [p.endpoint for p in peers]},
@@ -131,11 +135,11 @@ class Fleet:
         self.stamp = 0.0
         self.sent = 0
 
-    def publish(self, rounds: int) -> None:
+    def publish(self, rounds: int, span: int = 40) -> None:
         for _ in range(rounds):
             self.stamp += 1.0
             for k, robot in enumerate(ROBOTS):
-                ox = float(self.rng.integers(0, 40)) * RES
+                ox = float(self.rng.integers(0, span)) * RES
                 oy = float(self.rng.integers(0, 40)) * RES + k * 2 * RES
                 data = self.rng.integers(115, 141, size=(48, 56), dtype=np.uint8)
                 self.clients[robot].publish_ism(f"ism/{robot}/laser/obstacle", data,
@@ -223,9 +227,10 @@ def test_three_members_failover_join_and_late_member(tmp_path: Path,
             assert np.array_equal(_submap(member.endpoint), expected)
 
         # SIGKILL one member mid-run: nothing lost, queries answered, copies restored.
-        c.proc.send_signal(signal.SIGKILL)
+        fleet.publish(2)
+        c.proc.send_signal(signal.SIGKILL)  # while the members still work on those ISMs
         c.proc.wait(10)
-        fleet.publish(3)
+        fleet.publish(2)
         assert wait_until(lambda: _all_fused(observer, fleet.sent, 2)
                           and len(_held(observer)) == 2
                           and set(_copies(_held(observer)).values()) == {2}, 60)
@@ -259,3 +264,89 @@ def test_three_members_failover_join_and_late_member(tmp_path: Path,
         observer.close()
         fleet.close()
 
+
+
+def _pulled_and_current(client: MapClient) -> tuple[int, int]:
+    s = client.stats()
+    return (s.counters.get("cluster_tiles_pulled", 0), s.counters.get("cluster_tiles_current", 0))
+
+
+@pytest.mark.timeout(180)
+def test_a_restarted_member_pulls_only_what_changed(tmp_path: Path,
+                                                    procs: list[ServerProcess]) -> None:
+    a = _member(tmp_path, "a", [], 1)
+    procs.append(a)
+    b_endpoint = free_tcp_endpoint()
+    b = _member(tmp_path, "b", [a], 2, endpoint=b_endpoint)
+    procs.append(b)
+    ref = _reference(tmp_path, [a])
+    procs.append(ref)
+    fleet = Fleet(a.endpoint, seed=11)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        fleet.publish(4)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2), 60)
+        assert b.terminate() == 0  # flushes its store
+        fleet.publish(2, span=8)  # touches only the tiles near the origin
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 1), 60)
+        b = _member(tmp_path, "b2", [a], 2, endpoint=b_endpoint, store="b")
+        procs.append(b)
+        assert wait_until(lambda: _all_fused(observer, 0, 2), 60)
+        with MapClient.connect(b.endpoint, timeout=5.0) as bc:
+            stats = _member_stats(bc)
+        restarted = next(st for st in stats.values() if st["counters"].get("isms_fused", 0) == 0)
+        pulled = restarted["counters"].get("cluster_tiles_pulled", 0)
+        current = restarted["counters"].get("cluster_tiles_current", 0)
+        assert current > 0 and pulled > 0  # some tiles changed while it was away, most not
+        assert pulled + current == restarted["extra"]["cluster_tiles_held"]
+        expected = _reference_map(ref, fleet.sent)
+        assert np.array_equal(_submap(b.endpoint), expected)
+        fleet.publish(2)
+        assert wait_until(lambda: sorted(st["counters"].get("isms_fused", 0) for st in
+                                         _member_stats(observer).values()) == [6, fleet.sent],
+                          60)
+        expected = _reference_map(ref, fleet.sent)
+        for member in (a, b):
+            assert np.array_equal(_submap(member.endpoint), expected)
+    finally:
+        observer.close()
+        fleet.close()
+
+
+@pytest.mark.timeout(120)
+def test_no_live_owner_is_a_clear_error(tmp_path: Path, procs: list[ServerProcess]) -> None:
+    """replicas = 1: a member that stops answering (SIGSTOP: its token lives on until its
+    lease ends) leaves its tiles without an owner; a window over them is refused with
+    no_owner within the fetch timeout, and answered again once it resumes."""
+    a = _member(tmp_path, "a", [], 1, replicas=1, fetch_timeout_s=0.5)
+    procs.append(a)
+    b = _member(tmp_path, "b", [a], 2, replicas=1, fetch_timeout_s=0.5)
+    procs.append(b)
+    fleet = Fleet(a.endpoint, seed=3)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        fleet.publish(3)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2)
+                          and set(_copies(_held(observer)).values()) == {1}, 60)
+        held = _held(observer)
+        assert len(held) == 2 and all(held.values())
+        b.proc.send_signal(signal.SIGSTOP)
+        try:
+            codes = []
+            for reply in observer.session.get(
+                    observer.key("submap") + "?x=0;y=0;width=9.6;height=9.6;resolution=0.1",
+                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=4.0):
+                if reply.err is not None:  # a's refusal, and Zenoh's timeout for b
+                    try:
+                        codes.append(codec.decode(ErrorReply, reply.err.payload.to_bytes()).code)
+                    except DecodeError:
+                        codes.append("not_a_server_reply")
+            assert "no_owner" in codes  # from a; b is stopped and says nothing
+            assert set(codes) <= {"no_owner", "not_a_server_reply"}
+        finally:
+            b.proc.send_signal(signal.SIGCONT)
+        assert np.abs(_submap(a.endpoint)).sum() > 0
+    finally:
+        observer.close()
+        fleet.close()
