@@ -75,8 +75,9 @@ def test_window_price_reads_what_mosaic_allocates() -> None:
     seen: list[tuple[int, ...]] = []
     original = tiled.mosaic
 
-    def spy(box: tuple[int, int, int, int], ids: list[int]) -> np.ndarray:
-        out = original(box, ids)
+    def spy(box: tuple[int, int, int, int], ids: list[int],
+            now: float | None = None) -> np.ndarray:
+        out = original(box, ids, now)
         seen.append(out.shape)
         return out
 

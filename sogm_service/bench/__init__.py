@@ -35,6 +35,11 @@ def registry() -> list[Benchmark]:
 
         return mixed_fleet(quick)
 
+    def clustered(quick: bool) -> Row:
+        from sogm_service.bench.cluster import cluster
+
+        return cluster(quick)
+
     return [
         Benchmark("fuse_aligned", "aligned 1024x1024 prob_u8 ISM vs the streaming floor",
                   compute.fuse_aligned),
@@ -46,6 +51,8 @@ def registry() -> list[Benchmark]:
                   z("ingestion")),  # type: ignore[arg-type]
         Benchmark("mixed_fleet", "sub-map p50/p99 while a fleet streams ISMs vs idle",
                   mixed),
+        Benchmark("cluster", "ingestion with 2 cluster members vs 1 (replicas 1)",
+                  clustered),
         Benchmark("sevds", "SEVDS 256x256x3 vs OpenCV SEEDS", compute.sevds),
         Benchmark("memory", "100 m x 100 m at 5 cm, 8 layers: peak RSS vs raw bytes",
                   z("memory")),  # type: ignore[arg-type]

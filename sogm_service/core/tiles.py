@@ -49,6 +49,10 @@ from sogm_service.core.tiletypes import Loader, TileIndex
 _ALIGN_TOL = 1e-6
 
 
+Mark = tuple[float, int]
+"""An ISM's identity within its key: ``(stamp, digest)``."""
+
+
 @dataclass(eq=False)
 class Tile:
     """One tile: its layers (``(n, T, T)`` int16, n <= the map's layer count) and bookkeeping.
@@ -68,6 +72,8 @@ class Tile:
     # Decaying layers (:mod:`sogm_service.core.forget`): layer index -> the time up to which
     # its cells are decayed (absent: the tile's ``stamp``).  Guarded by ``lock``.
     decay: dict[int, float] = field(default_factory=dict)
+    applied: dict[str, Mark] = field(default_factory=dict, repr=False)
+    """The last ISM fused here per ISM key (a cluster's handover uses it; in memory only)."""
 
     @property
     def dirty(self) -> bool:
@@ -90,6 +96,7 @@ class TileSnapshot:
     version: int
     dirty: bool
     decay: dict[str, float] = field(default_factory=dict)  # decaying layer -> decayed up to
+    applied: dict[str, Mark] = field(default_factory=dict)
 
 
 Owner = Callable[[TileIndex], bool]
@@ -203,7 +210,8 @@ class TiledMap:
 
     def insert_tile(self, index: TileIndex, names: list[str], stack: npt.NDArray[np.int16],
                     stamp: float, saved: bool,
-                    decay: dict[str, float] | None = None) -> Tile:
+                    decay: dict[str, float] | None = None,
+                    applied: dict[str, Mark] | None = None) -> Tile:
         """Put a whole tile in place (from a store or a replica), replacing what was there."""
         t = self.tile_size
         if stack.shape != (len(names), t, t):
@@ -211,7 +219,7 @@ class TiledMap:
         with self._struct:
             version = self.tick()
             tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
-                        saved_version=version if saved else -1)
+                        saved_version=version if saved else -1, applied=dict(applied or {}))
             self._adopt_decay(tile, decay)
             old = self.tiles.get(index)
             if old is not None:
@@ -267,7 +275,8 @@ class TiledMap:
     def _snapshot_locked(self, tile: Tile) -> TileSnapshot:
         names, data = self.tile_layers(tile)
         return TileSnapshot(tile.index, names, data.copy(), tile.stamp, tile.version,
-                            tile.dirty, {names[k]: t for k, t in sorted(tile.decay.items())})
+                            tile.dirty, {names[k]: t for k, t in sorted(tile.decay.items())},
+                            dict(tile.applied))
 
     def _grow(self, tile: Tile, layer: int) -> None:
         have = tile.data.shape[0]
@@ -279,14 +288,16 @@ class TiledMap:
     # -- writing --------------------------------------------------------------------------
     def fuse(self, layer: str, inc: npt.NDArray[np.int16], geometry: GridGeometry,
              interp: Interp = "biodds", stamp: float = 0.0,
-             owned: Owner | None = None) -> list[TileIndex]:
+             owned: Owner | None = None,
+             mark: tuple[str, Mark] | None = None) -> list[TileIndex]:
         """Eq. 1: fuse fixed log-odds increments given in ``geometry`` into ``layer``.
 
         The increments are resampled into every tile the ISM overlaps (``interp``, outside the
         ISM -> 0, i.e. untouched) and added with the clamp; ``owned`` limits this to some tiles
-        (a fuse worker's share).  Returns the tiles written.  Only the add holds a lock (the
-        tile's); the ISM's alignment and inverse transform are worked out once
-        (:func:`sogm_service.core.resample.tile_patches`).
+        (a fuse worker's share); ``mark`` (ISM key, (stamp, digest)) is recorded in each tile
+        written as the last ISM of that key applied to it.  Returns the tiles written.  Only
+        the add holds a lock (the tile's); the ISM's alignment and inverse transform are
+        worked out once (:func:`sogm_service.core.resample.tile_patches`).
         """
         lid = self.layer_id(layer, create=True)
         self.advance_clock(stamp)
@@ -309,6 +320,8 @@ class TiledMap:
                                          self.limits)
                     tile.version = self.tick()
                     tile.stamp = max(tile.stamp, stamp)
+                    if mark is not None:
+                        tile.applied[mark[0]] = mark[1]
                 touched.append(index)
                 break
         return touched
@@ -367,9 +380,24 @@ class TiledMap:
             return np.ascontiguousarray(src[:, dv:dv + window.height, du:du + window.width])
         return resample_stack(src, src_geom, window, interp)
 
-    def bounds(self) -> tuple[float, float, float, float] | None:
-        """Metric box ``(xmin, ymin, xmax, ymax)`` of every tile the map has."""
-        known = self.known_tiles()
+    def discard(self, index: TileIndex) -> bool:
+        """Forget a tile entirely (resident and stored): a cluster member that no longer
+        owns it.  The caller removes its file from the store."""
+        with self._struct:
+            tile = self.tiles.pop(index, None)
+            known = tile is not None or index in self.stored
+            self.stored.discard(index)
+        if tile is not None:
+            with tile.lock:
+                tile.evicted = True
+        return known
+
+    def bounds(self, known: set[TileIndex] | None = None
+               ) -> tuple[float, float, float, float] | None:
+        """Metric box ``(xmin, ymin, xmax, ymax)`` of every tile the map has (or of
+        ``known``)."""
+        if known is None:
+            known = self.known_tiles()
         if not known:
             return None
         span = self.lattice.span

@@ -136,6 +136,19 @@ class Ros2Settings(_Section):
     max_tilt_rad: Annotated[float, Field(gt=0)] = 0.01
 
 
+class ClusterSettings(_Section):
+    """One map over several servers (:mod:`sogm_service.service.cluster`)."""
+
+    enabled: bool = False
+    replicas: Annotated[int, Field(ge=1, le=16)] = 2  # owners per tile; 1: no replication
+    fetch_timeout_s: Annotated[float, Field(gt=0, le=60)] = 1.0  # bound on a gather's wait
+    fetch_cache_s: Annotated[float, Field(ge=0, le=60)] = 0.5  # fetched tiles reused this long
+    fetch_cache_tiles: Annotated[int, Field(ge=0, le=100000)] = 64
+    handover_timeout_s: Annotated[float, Field(gt=0, le=600)] = 10.0  # one tile's pull
+    journal_limit: Annotated[int, Field(ge=1, le=1000000)] = 4096  # ISMs held per handover
+    settle_s: Annotated[float, Field(ge=0, le=60)] = 0.2  # membership changes batched this long
+
+
 class ZenohSettings(_Section):
     mode: Literal["peer", "client", "router"] = "peer"
     listen: list[str] = []
@@ -154,6 +167,7 @@ class ServiceConfig(_Section):
     limits: LimitSettings = LimitSettings()
     zenoh: ZenohSettings = ZenohSettings()
     ros2: Ros2Settings = Ros2Settings()
+    cluster: ClusterSettings = ClusterSettings()
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("ism")

@@ -45,6 +45,9 @@ class FuseJob:
     interp: Interp
     stamp: float
     done: Done
+    key: str = ""  # the ISM key and identity (a cluster member's handover needs them)
+    digest: int = 0
+    allowed: frozenset[TileIndex] | None = None  # the tiles this member may write (cluster)
     _parts: int = field(default=0, init=False)
     _touched: list[TileIndex] = field(default_factory=list, init=False)
     _error: BaseException | None = field(default=None, init=False)
@@ -54,9 +57,16 @@ class FuseJob:
         """Fuse this worker's share; the last share to finish reports the whole ISM."""
         touched: list[TileIndex] = []
         error: BaseException | None = None
+        allowed = self.allowed
+        if allowed is not None:
+            share = owned
+
+            def owned(index: TileIndex) -> bool:
+                return index in allowed and (share is None or share(index))
         try:
             touched = tiled.fuse(self.layer, self.increments, self.geometry, self.interp,
-                                 self.stamp, owned)
+                                 self.stamp, owned,
+                                 (self.key, (self.stamp, self.digest)) if self.key else None)
         except Exception as exc:  # reported with the ISM; never ends the worker
             error = exc
         with self._lock:
@@ -80,6 +90,8 @@ class FuseWorkers:
         self._threads: list[threading.Thread] = []
         self._idle = threading.Condition()
         self._pending = 0
+        self.scope: Callable[[FuseJob], frozenset[TileIndex] | None] | None = None
+        """A cluster member's share of the map: the tiles of a job it may write."""
         if workers > 1:
             for k in range(workers):
                 q: queue.Queue[FuseJob | None] = queue.Queue(maxsize=_QUEUE_SIZE)
@@ -95,12 +107,14 @@ class FuseWorkers:
     def submit(self, job: FuseJob) -> None:
         """Fuse ``job`` (at once with one worker; else queued to the workers owning its tiles,
         blocking while their queues are full)."""
+        if self.scope is not None:
+            job.allowed = self.scope(job)
         if self.workers == 1:
             job._parts = 1
             job.fuse(self.tiled, None)
             return
         owners = sorted({self.owner(i) for i in self.tiled.lattice.tiles_overlapping(
-            job.geometry)})
+            job.geometry) if job.allowed is None or i in job.allowed})
         if not owners:
             job._parts = 1
             job.fuse(self.tiled, lambda index: False)

@@ -22,6 +22,7 @@ import re
 import time
 from dataclasses import dataclass, replace
 from functools import partial
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -144,7 +145,8 @@ class IngestPipeline:
             self.tiled.layer_id(ism.layer, create=True)  # layers in arrival order, any K
             self.fusers.submit(FuseJob(
                 ism.layer, ism.increments, ism.geometry, self.config.ism[ism.source].interp,
-                ism.msg.stamp, done=partial(self._fused, ism, started)))
+                ism.msg.stamp, done=partial(self._fused, ism, started),
+                **self.identity(item, ism.msg)))
         except SogmError as exc:
             self.rejections.reject(exc.code, f"{item.key}: {exc}")
         except Exception as exc:  # never let one ISM kill the worker
@@ -201,3 +203,13 @@ class IngestPipeline:
         self.fleet.ism_centre(ism.msg.robot, x, y, ism.msg.stamp)
         if touched:
             self.tiles.enforce_budget()
+
+    def identity(self, item: IsmItem, msg: IsmMessage) -> dict[str, Any]:
+        """A cluster member's fuse job carries the ISM's key and a digest of it (handover:
+        ``sogm_service.service.cluster``); nothing otherwise."""
+        if not self.config.cluster.enabled:
+            return {}
+        from sogm_service.service.cluster import ism_digest
+
+        payload = item.payload or bytes(msg.data) + repr(msg.stamp).encode()
+        return {"key": item.key, "digest": ism_digest(payload)}

@@ -32,6 +32,7 @@ from sogm_service.core.geometry import TileLattice
 from sogm_service.core.tiles import TiledMap
 from sogm_service.service import queries
 from sogm_service.service.checkpoints import Checkpointer
+from sogm_service.service.cluster import Cluster
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fleet import FleetTracker
 from sogm_service.service.fusers import FuseWorkers
@@ -81,6 +82,10 @@ class MapServer:
         self._queue = IngestQueue(config.limits.queue_size, config.limits.queue_policy,
                                   self.stats)
         self._worker = IngestWorker(self._queue, self.pipeline.handle, self.stats)
+        self.cluster: Cluster | None = None
+        if config.cluster.enabled:
+            self.cluster = Cluster(config, self.map, self.tiles, self.stats, self.fusers,
+                                   lambda t: self.wait_idle(t) and self.fusers.drain(t))
         self._owns_session = session is None
         self._session = session
         self._declared: list[Any] = []
@@ -139,6 +144,8 @@ class MapServer:
             self.keys.all_tiles, self._guarded("tiles", self.replication.on_tiles)))
         self._declared.append(s.declare_queryable(
             self.keys.robots, self._guarded("robots", lambda q: self.fleet.robots_reply())))
+        if self.cluster is not None:  # pulls the tiles it will own before declaring itself
+            self.cluster.join(s, self.server_id)
         self._declared.append(s.liveliness().declare_token(self.keys.server_token(self.server_id)))
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -147,6 +154,8 @@ class MapServer:
             self._ros2.close(timeout)
             self._ros2 = None
         self._queue.close()
+        if self.cluster is not None:
+            self.cluster.close()
         for entity in reversed(self._declared):
             try:
                 entity.undeclare()
@@ -236,25 +245,25 @@ class MapServer:
 
     def _on_submap(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SubmapRequest, *self.params(q))
-        return queries.submap(self.map, req, self.config.limits.max_query_cells, time.time(),
-                              admission=self.pipeline.admission)
+        return queries.submap(self.query_map(), req, self.config.limits.max_query_cells,
+                              time.time(), admission=self.pipeline.admission)
 
     def _on_fused(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(FusedRequest, *self.params(q))
-        return queries.fused(self.map, req, self.config.limits.max_query_cells, time.time(),
-                             admission=self.pipeline.admission)
+        return queries.fused(self.query_map(), req, self.config.limits.max_query_cells,
+                             time.time(), admission=self.pipeline.admission)
 
     def _on_supercells(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SupercellRequest, *self.params(q))
         with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
             window, layers, stack = queries.supercell_input(
-                self.map, req, self.config.limits.max_query_cells,
+                self.query_map(), req, self.config.limits.max_query_cells,
                 admission=self.pipeline.admission)
             return queries.supercells(self.map, req, window, layers, stack, time.time())
 
     def info(self) -> InfoReply:
         tiled = self.map
-        tiles = self.pipeline.admission.reportable_tiles(tiled.known_tiles())
+        tiles = self.pipeline.admission.reportable_tiles(self.all_tiles())
         return InfoReply(
             map=tiled.name, frame=tiled.frame, server_id=self.server_id,
             resolution=tiled.lattice.resolution, tile_size=tiled.tile_size,
@@ -276,8 +285,20 @@ class MapServer:
         extra.update(self.matcher.stats_extra())
         if self._ros2 is not None:
             extra.update(self._ros2.stats_extra())
+        if self.cluster is not None:
+            extra.update(self.cluster.stats_extra())
         return StatsReply(map=self.config.map.name, server_id=self.server_id,
                           uptime_s=time.monotonic() - self.stats.started, counters=counters,
                           rejected=rejected, queue_depth=self._queue.depth(),
                           isms_per_s=self.stats.isms_per_s(),
                           latency_ms=self.stats.percentiles(), extra=extra)
+
+    # -- cluster (sogm_service.service.cluster) ---------------------------------------------
+    def query_map(self) -> TiledMap:
+        """The map a window query reads: this server's, or in a cluster the tiles it serves
+        and its peers' for the rest."""
+        return self.map if self.cluster is None else self.cluster.query_map()
+
+    def all_tiles(self) -> set[tuple[int, int]]:
+        """Every tile of the map: in a cluster, every member's."""
+        return self.map.known_tiles() if self.cluster is None else self.cluster.all_tiles()

@@ -284,6 +284,21 @@ class DirectoryStore:
         log.warning("tile file %s rejected: %s%s", path, reason,
                     f"; moved to {moved}" if moved else "")
 
+    def remove(self, i: int, j: int) -> bool:
+        """Delete tile ``(i, j)``'s file (a cluster member that no longer owns the tile);
+        True when there was one."""
+        if self.readonly:
+            raise PermissionError(f"store {self.directory} was opened read-only")
+        path = self.path_for(i, j)
+        with self._lock:
+            self._index.pop((i, j), None)
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                return False
+            _fsync_dir(self.directory)
+        return True
+
 
 def _same_file(path: Path, inode: int | None) -> bool:
     """Whether ``path`` still is the file that was read (a writer may have replaced it)."""

@@ -72,6 +72,7 @@ QUERY_CODES: Final[dict[str, str]] = {
     "out_of_world": "the window lies (partly) outside the configured world extent",
     "reply_too_large": "the reply would exceed the reply byte limit",
     "busy": "too many heavy queries run at once; retry after retry_after_s",
+    "no_owner": "no live owner of a tile the window needs answered in time (cluster)",
 }
 """Why a query cannot be answered (:class:`QueryError`)."""
 

@@ -1,0 +1,352 @@
+"""One map over several servers (issue 20): ownership, ingestion share, gathering, failover.
+
+The integration tests run real ``serve`` processes of one map on 127.0.0.1, a reference server
+(a single server of another map name, fed the same ISMs) and a fleet of robot sessions.  The
+fleet's ISMs are aligned with the map and mild (p in [0.45, 0.55]), so no cell reaches the clamp:
+Eq. 1 is then exact integer addition, and every member's tiles must equal the reference's bit
+for bit whatever order the members received the robots' ISMs in.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from sogm_service.core.geometry import Pose2D
+from sogm_service.core.rendezvous import Ownership, owners_of, ranking
+from sogm_service.service.client import MapClient
+from sogm_service.service.cluster import replay_plan
+from sogm_service.service.fusers import FuseJob
+from sogm_service.service.session import free_tcp_endpoint, loopback_settings, open_session
+from sogm_service.wire import codec
+from sogm_service.wire.errors import DecodeError
+from sogm_service.wire.messages import ErrorReply
+from tests.conftest import ServerProcess, start_server, wait_until
+
+RES = 0.1
+TILE = 16  # cells: 1.6 m tiles, so a handful of small ISMs spans many tiles
+ROBOTS = ("r1", "r2", "r3")
+LAYERS = [f"{r}/laser/obstacle" for r in ROBOTS]
+WINDOW = dict(x=0.0, y=0.0, width=9.6, height=9.6)  # the fleet's whole area
+PUBLISHED: list[int] = []
+
+
+# -- pure: rendezvous and the replay plan ---------------------------------------------------
+def test_owners_are_the_same_for_any_member_order_and_distinct() -> None:
+    members = [f"m{k}" for k in range(5)]
+    for index in [(i, j) for i in range(-5, 5) for j in range(-5, 5)]:
+        a = owners_of(members, index, 2)
+        b = owners_of(list(reversed(members)), index, 2)
+        assert a == b and len(set(a)) == 2
+    assert owners_of(["only"], (0, 0), 2) == ("only",)
+
+
+def test_a_join_moves_only_tiles_to_the_new_member_and_about_its_share() -> None:
+    tiles = [(i, j) for i in range(-20, 20) for j in range(-20, 20)]
+    before = Ownership(frozenset({"a", "b", "c"}), 2)
+    after = before.with_member("d")
+    moved = 0
+    for t in tiles:
+        gained = set(after.owners(t)) - set(before.owners(t))
+        assert gained <= {"d"}  # nobody but the newcomer gains a tile
+        moved += len(gained)
+    share = moved / (2 * len(tiles))  # the newcomer's fraction of all copies
+    assert 0.2 < share < 0.3  # ~1/4 of the copies
+
+
+def test_a_leave_reassigns_only_the_leavers_copies() -> None:
+    tiles = [(i, j) for i in range(-10, 10) for j in range(-10, 10)]
+    before = Ownership(frozenset({"a", "b", "c", "d"}), 2)
+    after = before.without_member("b")
+    for t in tiles:
+        kept = set(before.owners(t)) - {"b"}
+        assert kept <= set(after.owners(t)) and len(after.owners(t)) == 2
+        if "b" not in before.owners(t):
+            assert after.owners(t) == before.owners(t)
+    assert ranking(["x", "y"], (1, 2)) == ranking(["y", "x"], (1, 2))
+
+
+def _job(key: str, stamp: float, digest: int) -> FuseJob:
+    return FuseJob("l", np.zeros((1, 1), np.int16), None, "nearest", stamp,  # type: ignore
+                   lambda t, e: None, key=key, digest=digest)
+
+
+def test_replay_plan_neither_loses_nor_repeats() -> None:
+    journal = [_job("a", 1, 11), _job("b", 1, 21), _job("a", 2, 12), _job("b", 2, 22),
+               _job("a", 3, 13)]
+    # the copy holds a up to stamp 2 and b up to 1: replay a3 and b2, in journal order
+    keep, skip = replay_plan(journal, {"a": (2.0, 12), "b": (1.0, 21)})
+    assert [(j.key, j.stamp) for j in keep] == [("b", 2), ("a", 3)] and not skip
+    # the copy has nothing of a, and b from before the journal started: replay all
+    keep, skip = replay_plan(journal, {"b": (0.5, 20)})
+    assert len(keep) == 5 and not skip
+    # the copy is ahead of us on a (a4 reached its owner first): replay no a, skip until a4
+    keep, skip = replay_plan(journal, {"a": (4.0, 14)})
+    assert [j.key for j in keep] == ["b", "b"] and skip == {"a": (4.0, 14)}
+
+
+# -- processes ------------------------------------------------------------------------------
+def _member(tmp_path: Path, name: str, peers: list[ServerProcess], servers: int,
+            endpoint: str | None = None, store: str | None = None,
+            **cluster: Any) -> ServerProcess:
+    sections: dict[str, dict[str, Any]] = {
+        "map": {"resolution": RES, "tile_size": TILE},
+        "cluster": {"enabled": True, "replicas": 2, "fetch_cache_s": 0.0, **cluster},
+        "storage": {"directory": str(tmp_path / f"store-{store or name}"),
+                    "checkpoint_interval_s": 0.5},
+        "zenoh": {"listen": [endpoint or free_tcp_endpoint()],
+                  "connect": [p.endpoint for p in peers]},
+    }
+    return start_server(tmp_path, sections, name=name, servers=servers, wait=40.0)
+
+
+def _reference(tmp_path: Path, peers: list[ServerProcess]) -> ServerProcess:
+    sections: dict[str, dict[str, Any]] = {
+        "map": {"name": "ref", "resolution": RES, "tile_size": TILE},
+        "zenoh": {"listen": [free_tcp_endpoint()], "connect": [p.endpoint for p in peers]},
+    }
+    return start_server(tmp_path, sections, name="ref")
+
+
+@pytest.fixture
+def procs() -> Iterator[list[ServerProcess]]:
+    started: list[ServerProcess] = []
+    yield started
+    for p in started:
+        if p.proc.poll() is None:
+            p.proc.kill()  # ours, by pid
+            p.proc.wait(10)
+
+
+class Fleet:
+    """Robots, each its own Zenoh session (peer, connected to the first member)."""
+
+    def __init__(self, endpoint: str, seed: int = 7) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.clients = {r: MapClient(open_session(loopback_settings(connect=endpoint)))
+                        for r in ROBOTS}
+        self.stamp = 0.0
+        self.sent = 0
+
+    def publish(self, rounds: int, span: int = 40) -> None:
+        for _ in range(rounds):
+            self.stamp += 1.0
+            for k, robot in enumerate(ROBOTS):
+                ox = float(self.rng.integers(0, span)) * RES
+                oy = float(self.rng.integers(0, 40)) * RES + k * 2 * RES
+                data = self.rng.integers(115, 141, size=(48, 56), dtype=np.uint8)
+                self.clients[robot].publish_ism(f"ism/{robot}/laser/obstacle", data,
+                                                resolution=RES, origin=Pose2D(ox, oy, 0.0),
+                                                stamp=self.stamp)
+                self.sent += 1
+
+    def close(self) -> None:
+        for c in self.clients.values():
+            c.close()
+
+
+def _member_stats(client: MapClient) -> dict[str, dict[str, Any]]:
+    """Every member's stats, by server id (one reply per member: consolidation NONE)."""
+    out = {}
+    for reply in client.session.get(client.key("stats"), target=zenoh.QueryTarget.ALL,
+                                    consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0):
+        if reply.ok is not None:
+            got = msgpack.unpackb(reply.ok.payload.to_bytes())
+            out[got["server_id"]] = got
+    return out
+
+
+def _held(client: MapClient) -> dict[str, set[tuple[int, int]]]:
+    out = {}
+    for reply in client.session.get(client.key("cluster", "held"), target=zenoh.QueryTarget.ALL,
+                                    consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0):
+        if reply.ok is not None:
+            got = msgpack.unpackb(reply.ok.payload.to_bytes())
+            out[got["member"]] = {(int(i), int(j)) for i, j in got["tiles"]}
+    return out
+
+
+def _all_fused(client: MapClient, n: int, members: int) -> bool:
+    stats = _member_stats(client)
+    return len(stats) >= members and all(
+        s["counters"].get("isms_fused", 0) >= n and not s["extra"].get("cluster_handover")
+        for s in stats.values())
+
+
+def _copies(held: dict[str, set[tuple[int, int]]]) -> dict[tuple[int, int], int]:
+    count: dict[tuple[int, int], int] = {}
+    for tiles in held.values():
+        for t in tiles:
+            count[t] = count.get(t, 0) + 1
+    return count
+
+
+def _submap(endpoint: str, map_name: str = "default") -> np.ndarray:
+    with MapClient.connect(endpoint, map_name=map_name, timeout=5.0) as c:
+        sub = c.submap(**WINDOW, resolution=RES, layers=LAYERS, encoding="logodds_i16")
+        return np.asarray(sub.data)
+
+
+def _reference_map(ref: ServerProcess, n: int) -> np.ndarray:
+    with MapClient.connect(ref.endpoint, map_name="ref", timeout=5.0) as c:
+        assert wait_until(lambda: c.stats().counters.get("isms_fused", 0) >= n, 30)
+    return _submap(ref.endpoint, "ref")
+
+
+@pytest.mark.timeout(240)
+def test_three_members_failover_join_and_late_member(tmp_path: Path,
+                                                     procs: list[ServerProcess]) -> None:
+    a = _member(tmp_path, "a", [], 1)
+    procs.append(a)
+    b = _member(tmp_path, "b", [a], 2)
+    procs.append(b)
+    c = _member(tmp_path, "c", [a, b], 3)
+    procs.append(c)
+    ref = _reference(tmp_path, [a])
+    procs.append(ref)
+    fleet = Fleet(a.endpoint)
+    observer = MapClient.connect(b.endpoint, timeout=5.0)
+    try:
+        fleet.publish(4)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 3), 60)
+        held = _held(observer)
+        assert len(held) == 3
+        copies = _copies(held)
+        assert copies and set(copies.values()) == {2}  # every tile on exactly 2 members
+        assert all(tiles for tiles in held.values())  # each member holds a share
+        expected = _reference_map(ref, fleet.sent)
+        assert np.abs(expected).sum() > 0
+        for member in (a, b, c):  # any member answers for the whole map, bit for bit
+            assert np.array_equal(_submap(member.endpoint), expected)
+
+        # SIGKILL one member mid-run: nothing lost, queries answered, copies restored.
+        fleet.publish(2)
+        c.proc.send_signal(signal.SIGKILL)  # while the members still work on those ISMs
+        c.proc.wait(10)
+        fleet.publish(2)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2)
+                          and len(_held(observer)) == 2
+                          and set(_copies(_held(observer)).values()) == {2}, 60)
+        assert set(_copies(_held(observer))) >= set(copies)  # no tile lost
+        expected = _reference_map(ref, fleet.sent)
+        for member in (a, b):
+            assert np.array_equal(_submap(member.endpoint), expected)
+
+        # A fourth member joins late: it pulls its share first, then takes part.
+        d = _member(tmp_path, "d", [a, b], 3)
+        procs.append(d)
+        # The others drop what they no longer own once they see it: a condition, waited for.
+        assert wait_until(lambda: _all_fused(observer, 0, 3)
+                          and set(_copies(_held(observer)).values()) == {2}, 60)
+        held = _held(observer)
+        assert len(held) == 3 and all(held.values())
+        assert np.array_equal(_submap(d.endpoint), expected)  # caught up before any new ISM
+        fleet.publish(3)
+
+        def caught_up() -> bool:  # d got only the last 9 ISMs; a and b all of them
+            fused = sorted(st["counters"].get("isms_fused", 0)
+                           for st in _member_stats(observer).values())
+            return len(fused) == 3 and fused[0] >= 9 and fused[1] >= fleet.sent
+
+        assert wait_until(caught_up, 60)
+        expected = _reference_map(ref, fleet.sent)
+        for member in (a, b, d):
+            assert np.array_equal(_submap(member.endpoint), expected)
+        assert set(_copies(_held(observer)).values()) == {2}
+    finally:
+        observer.close()
+        fleet.close()
+
+
+
+def _pulled_and_current(client: MapClient) -> tuple[int, int]:
+    s = client.stats()
+    return (s.counters.get("cluster_tiles_pulled", 0), s.counters.get("cluster_tiles_current", 0))
+
+
+@pytest.mark.timeout(180)
+def test_a_restarted_member_pulls_only_what_changed(tmp_path: Path,
+                                                    procs: list[ServerProcess]) -> None:
+    a = _member(tmp_path, "a", [], 1)
+    procs.append(a)
+    b_endpoint = free_tcp_endpoint()
+    b = _member(tmp_path, "b", [a], 2, endpoint=b_endpoint)
+    procs.append(b)
+    ref = _reference(tmp_path, [a])
+    procs.append(ref)
+    fleet = Fleet(a.endpoint, seed=11)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        fleet.publish(4)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2), 60)
+        assert b.terminate() == 0  # flushes its store
+        fleet.publish(2, span=8)  # touches only the tiles near the origin
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 1), 60)
+        b = _member(tmp_path, "b2", [a], 2, endpoint=b_endpoint, store="b")
+        procs.append(b)
+        assert wait_until(lambda: _all_fused(observer, 0, 2), 60)
+        with MapClient.connect(b.endpoint, timeout=5.0) as bc:
+            stats = _member_stats(bc)
+        restarted = next(st for st in stats.values() if st["counters"].get("isms_fused", 0) == 0)
+        pulled = restarted["counters"].get("cluster_tiles_pulled", 0)
+        current = restarted["counters"].get("cluster_tiles_current", 0)
+        assert current > 0 and pulled > 0  # some tiles changed while it was away, most not
+        assert pulled + current == restarted["extra"]["cluster_tiles_held"]
+        expected = _reference_map(ref, fleet.sent)
+        assert np.array_equal(_submap(b.endpoint), expected)
+        fleet.publish(2)
+        assert wait_until(lambda: sorted(st["counters"].get("isms_fused", 0) for st in
+                                         _member_stats(observer).values()) == [6, fleet.sent],
+                          60)
+        expected = _reference_map(ref, fleet.sent)
+        for member in (a, b):
+            assert np.array_equal(_submap(member.endpoint), expected)
+    finally:
+        observer.close()
+        fleet.close()
+
+
+@pytest.mark.timeout(120)
+def test_no_live_owner_is_a_clear_error(tmp_path: Path, procs: list[ServerProcess]) -> None:
+    """replicas = 1: a member that stops answering (SIGSTOP: its token lives on until its
+    lease ends) leaves its tiles without an owner; a window over them is refused with
+    no_owner within the fetch timeout, and answered again once it resumes."""
+    a = _member(tmp_path, "a", [], 1, replicas=1, fetch_timeout_s=0.5)
+    procs.append(a)
+    b = _member(tmp_path, "b", [a], 2, replicas=1, fetch_timeout_s=0.5)
+    procs.append(b)
+    fleet = Fleet(a.endpoint, seed=3)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        fleet.publish(3)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2)
+                          and set(_copies(_held(observer)).values()) == {1}, 60)
+        held = _held(observer)
+        assert len(held) == 2 and all(held.values())
+        b.proc.send_signal(signal.SIGSTOP)
+        try:
+            codes = []
+            for reply in observer.session.get(
+                    observer.key("submap") + "?x=0;y=0;width=9.6;height=9.6;resolution=0.1",
+                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=4.0):
+                if reply.err is not None:  # a's refusal, and Zenoh's timeout for b
+                    try:
+                        codes.append(codec.decode(ErrorReply, reply.err.payload.to_bytes()).code)
+                    except DecodeError:
+                        codes.append("not_a_server_reply")
+            assert "no_owner" in codes  # from a; b is stopped and says nothing
+            assert set(codes) <= {"no_owner", "not_a_server_reply"}
+        finally:
+            b.proc.send_signal(signal.SIGCONT)
+        assert np.abs(_submap(a.endpoint)).sum() > 0
+    finally:
+        observer.close()
+        fleet.close()
