@@ -35,6 +35,7 @@ import numpy as np
 import pytest
 import zenoh
 from cryptography import x509
+from cryptography.hazmat.primitives import serialization
 from cryptography.x509.oid import NameOID
 
 from sogm_service.apps import certs
@@ -535,7 +536,7 @@ def test_a_ca_bundle_admits_both_cas_for_a_rollover(tmp_path: Path) -> None:
     new = make_ca("next site CA")
     bundle = tmp_path / "bundle.crt"
     bundle.write_bytes(pki.ca_cert.read_bytes()
-                       + new.cert.public_bytes(certs.serialization.Encoding.PEM))
+                       + new.cert.public_bytes(serialization.Encoding.PEM))
     cert, key = make_identity(new, "robotA")
     certs.write_cert(tmp_path / "new.crt", cert)
     certs.write_key(tmp_path / "new.key", key)
