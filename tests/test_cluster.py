@@ -22,8 +22,8 @@ import zenoh
 from sogm_service.core.geometry import Pose2D
 from sogm_service.core.rendezvous import Ownership, owners_of, ranking
 from sogm_service.service.client import MapClient
-from sogm_service.service.cluster import replay_plan
 from sogm_service.service.fusers import FuseJob
+from sogm_service.service.handover import replay_plan
 from sogm_service.service.session import free_tcp_endpoint, loopback_settings, open_session
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError

@@ -37,12 +37,10 @@ supported in a cluster.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import queue
 import threading
 import time
-import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -58,6 +56,8 @@ from sogm_service.core.tiletypes import TileIndex
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fusers import FuseJob, FuseWorkers
+from sogm_service.service.gathered import GatheredMap
+from sogm_service.service.handover import content_digest, replay_plan
 from sogm_service.service.stats import Stats
 from sogm_service.store.format import Expectation, tile_from_bytes, tile_header, tile_to_bytes
 from sogm_service.wire.errors import ConfigError, QueryError, TileFormatError
@@ -66,55 +66,6 @@ from sogm_service.wire.keys import last_chunk
 log = logging.getLogger(__name__)
 
 _MAX_CLUSTER_BYTES = 64 << 20  # one cluster reply or request at most (a tile is ~N x 128 KiB)
-
-
-def ism_digest(payload: bytes) -> int:
-    """A cheap 64-bit identity of an ISM's payload (CRC-32 and Adler-32 side by side)."""
-    return (zlib.crc32(payload) << 32) | zlib.adler32(payload)
-
-
-def content_digest(names: list[str], data: npt.NDArray[np.int16]) -> str:
-    """A digest of a tile's content, independent of its layer order and of all-zero layers
-    (members learn layers in different orders)."""
-    h = hashlib.blake2b(digest_size=16)
-    for name, k in sorted((n, k) for k, n in enumerate(names)):
-        if k < data.shape[0] and data[k].any():
-            h.update(name.encode() + b"\0")
-            h.update(np.ascontiguousarray(data[k], dtype="<i2").tobytes())
-    return h.hexdigest()
-
-
-def replay_plan(journal: list[FuseJob], applied: dict[str, Mark]
-                ) -> tuple[list[FuseJob], dict[str, Mark]]:
-    """Which journaled ISMs a pulled tile still needs, in journal order, and the marks of ISMs
-    it holds that this member has not received yet (to skip when they arrive).
-
-    Per ISM key: after the copy's last ISM when the journal has it; all when the copy has none
-    of that key or its last is older than the journal's first; none when the copy's last is
-    newer than every journaled one (it reached the owner before it reached us)."""
-    start: dict[str, int] = {}
-    skip: dict[str, Mark] = {}
-    by_key: dict[str, list[int]] = {}
-    for pos, job in enumerate(journal):
-        by_key.setdefault(job.key, []).append(pos)
-    for key, positions in by_key.items():
-        mark = applied.get(key)
-        if mark is None:
-            start[key] = 0
-            continue
-        found = [p for p in positions if (journal[p].stamp, journal[p].digest) == mark]
-        if found:
-            start[key] = found[-1] + 1
-        elif mark[0] < journal[positions[0]].stamp:
-            start[key] = 0
-        else:
-            start[key] = len(journal)
-            skip[key] = mark
-    for key, mark in applied.items():
-        if key not in by_key:
-            skip.setdefault(key, mark)  # harmless if it never comes: a newer ISM clears it
-    keep = [job for pos, job in enumerate(journal) if pos >= start[job.key]]
-    return keep, skip
 
 
 @dataclass
@@ -567,37 +518,3 @@ class Cluster:
                 "cluster_tiles_primary": primary,
                 "cluster_tiles_replica": len(held) - primary,
                 "cluster_handover": self._busy}
-
-
-class GatheredMap(TiledMap):
-    """A read-only view of the cluster's map for one query: this member's tiles where it
-    serves them, the owners' (fetched once, before sampling) elsewhere."""
-
-    def __init__(self, base: TiledMap, cluster: Cluster) -> None:
-        super().__init__(base.name, base.frame, base.lattice, base.eps0)
-        self._base = base
-        self._cluster = cluster
-        self.layers = base.layers
-        self.set_forget(base._forget)  # decaying layers read as the base map reads them
-        self._remote: dict[TileIndex, Tile | None] = {}
-
-    def layer_id(self, layer: str, create: bool = False) -> int:
-        return self._base.layer_id(layer, create)
-
-    def known_tiles(self) -> set[TileIndex]:
-        return self._base.known_tiles()
-
-    def mosaic(self, box: tuple[int, int, int, int], layer_ids: list[int],
-               now: float | None = None) -> npt.NDArray[np.int16]:
-        c0, r0, w, h = box
-        t = self.tile_size
-        need = [(i, j) for j in range(r0 // t, (r0 + h - 1) // t + 1)
-                for i in range(c0 // t, (c0 + w - 1) // t + 1)
-                if not self._cluster.serves((i, j))]
-        self._remote = self._cluster.fetch(need) if need else {}
-        return super().mosaic(box, layer_ids, self._base.now() if now is None else now)
-
-    def get_tile(self, index: TileIndex, create: bool = False) -> Tile | None:
-        if index in self._remote:
-            return self._remote[index]
-        return self._base.get_tile(index)

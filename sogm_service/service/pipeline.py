@@ -209,7 +209,7 @@ class IngestPipeline:
         ``sogm_service.service.cluster``); nothing otherwise."""
         if not self.config.cluster.enabled:
             return {}
-        from sogm_service.service.cluster import ism_digest
+        from sogm_service.service.handover import ism_digest
 
         payload = item.payload or bytes(msg.data) + repr(msg.stamp).encode()
         return {"key": item.key, "digest": ism_digest(payload)}
