@@ -37,3 +37,20 @@ LAYER_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-./]{1,128}$"
 
 MAP_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-]+$"
 """What a map name may be (it is one chunk of every key and of every tile file name)."""
+
+WARMUP_WAIT_S: Final = 2.0
+"""How long a supercells query waits for the SEVDS kernels to finish compiling (first start
+after an install or upgrade; cached afterwards) before it answers ``warming_up``."""
+
+SUPERCELLS_TIMEOUT_S: Final = 90.0
+"""The client's default budget for a supercells query, retries on ``warming_up`` included
+(a cold numba compile took 7 s at load 4.4 on 2 cores)."""
+
+ACK_TABLE_SIZE: Final = 16384
+"""Outcomes of ISMs that asked for an acknowledgement, kept per server (the oldest go first)."""
+
+ISM_ID_PATTERN: Final = r"^[A-Za-z0-9_.\-]{1,64}$"
+"""What an ISM id (the Zenoh attachment of an ISM that asks for an acknowledgement) may be."""
+
+REJECTION_MESSAGE_CHARS: Final = 200
+"""A rejection report's message is cut to this many characters."""
