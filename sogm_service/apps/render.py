@@ -203,7 +203,8 @@ def save_map_png(path: str | os.PathLike[str], img: npt.NDArray[np.uint8], geome
     ax.add_artist(AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right",
                                   pad=0.4, color="crimson", frameon=True, size_vertical=0,
                                   label_top=True))
-    handles: list[Any] = [Patch(facecolor=(c[2] / 255.0, c[1] / 255.0, c[0] / 255.0), edgecolor="0.4", label=n)
+    handles: list[Any] = [Patch(facecolor=(c[2] / 255.0, c[1] / 255.0, c[0] / 255.0),
+                                edgecolor="0.4", label=n)
                           for n, c in (legend or PROBABILITY_LEGEND)]
     if robots:
         c, s = math.cos(yaw), math.sin(yaw)
@@ -236,8 +237,8 @@ def save_map_png(path: str | os.PathLike[str], img: npt.NDArray[np.uint8], geome
     return out
 
 
-def save_grid_png(path: str | os.PathLike[str], p: npt.NDArray, geometry: object, *, title: str = "",
-                  robots: list[Robot] | None = None) -> str:
+def save_grid_png(path: str | os.PathLike[str], p: npt.NDArray, geometry: object, *,
+                  title: str = "", robots: list[Robot] | None = None) -> str:
     """One layer (or a fused map) of probabilities: free white, occupied black, unknown blue."""
     return save_map_png(path, probability_image(p), geometry, title=title,
                         legend=PROBABILITY_LEGEND, robots=robots)
