@@ -534,8 +534,10 @@ def _yaw(args: argparse.Namespace) -> float:
 
 
 def _query(args: argparse.Namespace) -> int:
+    # A bad --yaw is refused before anything is asked (or connected to).
+    window = _window(args) if args.what not in ("info", "stats") else {}
     with _client(args) as client:
-        return _run_query(client, args)
+        return _run_query(client, args, window)
 
 
 def _window(args: argparse.Namespace) -> dict[str, Any]:
@@ -544,12 +546,11 @@ def _window(args: argparse.Namespace) -> dict[str, Any]:
                 resolution=args.resolution, layers=layers, interp=args.interp)
 
 
-def _run_query(client: Any, args: argparse.Namespace) -> int:
+def _run_query(client: Any, args: argparse.Namespace, window: dict[str, Any]) -> int:
     if args.what in ("info", "stats"):
         reply = client.info() if args.what == "info" else client.stats()
         print(reply.model_dump_json(indent=2))
         return 0
-    window = _window(args)  # a bad --yaw is refused before anything is asked
     if args.what == "supercells":
         return _run_supercells(client, args, window)
     if args.what == "submap":

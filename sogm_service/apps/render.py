@@ -263,7 +263,7 @@ def save_classes_png(path: str | os.PathLike[str], stack: npt.NDArray, geometry:
 def save_graph_png(path: str | os.PathLike[str], reply: SupercellReply, fused: GridResult,
                    robots: list[Robot] | None = None) -> str:
     """The supercell graph over the fused map of its window, with its legend."""
-    img = draw_graph(reply, fused, scale=1)
+    img = draw_graph(reply, fused, scale=4)
     legend = [*PROBABILITY_LEGEND[:2], ("supercell border", (40, 40, 220)),
               ("edge between neighbours", (60, 160, 60)),
               *[(f"node: {name}", c) for name, c in class_legend(list(reply.layers))[:-1]],

@@ -22,13 +22,23 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 
 
+def _can_write(path: Path) -> bool:
+    """True when a file can be created in the directory ``path`` (tried, not guessed: a
+    read-only mount or a sandbox says no even to root)."""
+    try:
+        with tempfile.TemporaryFile(dir=path):
+            return True
+    except OSError:
+        return False
+
+
 def _writable_dir(path: Path) -> bool:
     """True when ``path`` exists (or can be created) and files can be written in it."""
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return False
-    return os.access(path, os.W_OK | os.X_OK)
+    return _can_write(path)
 
 
 def choose_cache_dir(package_dir: Path, env: Mapping[str, str]) -> Path | None:
@@ -37,10 +47,8 @@ def choose_cache_dir(package_dir: Path, env: Mapping[str, str]) -> Path | None:
     if env.get("NUMBA_CACHE_DIR"):
         return None
     pycache = package_dir / "__pycache__"
-    if pycache.is_dir() and os.access(pycache, os.W_OK | os.X_OK):
-        return None
-    if not pycache.exists() and os.access(package_dir, os.W_OK | os.X_OK):
-        return None
+    if _can_write(pycache) if pycache.is_dir() else _can_write(package_dir):
+        return None  # numba caches beside the source
     candidates: list[Path] = []
     if env.get("CACHE_DIRECTORY"):  # systemd CacheDirectory= (may list several, ':'-separated)
         candidates.append(Path(env["CACHE_DIRECTORY"].split(":")[0]) / "numba")

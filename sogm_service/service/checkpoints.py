@@ -40,7 +40,9 @@ def open_store(config: ServiceConfig) -> DirectoryStore | None:
                               config.map.tile_size, frame=config.map.frame,
                               datum=config.map.datum)
     except StoreLockedError as exc:
-        raise RuntimeError(f"tile store {directory} is in use by another server: {exc}") from None
+        # StoreLockedError is a RuntimeError: callers that caught that still do.
+        raise StoreLockedError(f"tile store {directory} is in use by another server "
+                               f"({exc.message})") from None
 
 
 class Checkpointer:
