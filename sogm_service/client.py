@@ -6,7 +6,14 @@ path stable and gathers what a client program needs in one place.
 
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.service.client import GridResult, MapClient
-from sogm_service.wire.errors import ClientError, QueryTimeoutError, ServiceError
+from sogm_service.wire.errors import (
+    ClientError,
+    ConnectError,
+    InvalidIsmError,
+    IsmNotFusedError,
+    QueryTimeoutError,
+    ServiceError,
+)
 
-__all__ = ["ClientError", "GridGeometry", "GridResult", "MapClient", "Pose2D",
-           "QueryTimeoutError", "ServiceError"]
+__all__ = ["ClientError", "ConnectError", "GridGeometry", "GridResult", "InvalidIsmError",
+           "IsmNotFusedError", "MapClient", "Pose2D", "QueryTimeoutError", "ServiceError"]

@@ -27,10 +27,12 @@ from sogm_service.wire.messages import (
     GeodeticFix,
     GridReply,
     InfoReply,
+    IsmAck,
     IsmMessage,
     MatchReport,
     PoseMessage,
     PoseModel,
+    RejectionReport,
     RobotTilesReply,
     StatsReply,
     SubmapRequest,
@@ -110,6 +112,11 @@ def valid_instances() -> dict[type[BaseModel], BaseModel]:
         mode="report", accepted=True, reason="ok", claimed=pose,
         corrected=PoseModel(x=1.1, y=2.0, yaw=-0.45), dx_m=0.1, dy_m=0.0, dyaw_rad=0.05,
         inliers=42, score_before=0.2, score_after=0.8, elapsed_ms=13.0)
+    instances[RejectionReport] = RejectionReport(
+        key="ism/r1/laser/obstacle", code="wrong_frame", message="ISM frame 'odom'",
+        stamp=6.0, id="a1b2c3-7")
+    instances[IsmAck] = IsmAck(id="a1b2c3-7", status="rejected", key="ism/r1/laser/obstacle",
+                               code="wrong_frame", message="ISM frame 'odom'", stamp=6.0)
     return instances
 
 

@@ -233,31 +233,25 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
     thread = threading.Thread(target=fleet, name="demo-fleet")
     t0 = time.monotonic()
     wall = duration_s / speed if realtime else None
+    from tqdm import tqdm
+
     tty = sys.stderr.isatty()
-    last = -1.0
+    # A bar with the time left on a terminal; a line every 5 s in a log.
+    bar = tqdm(total=round(wall, 1) if wall else None, unit="s", desc="demo", file=sys.stderr,
+               disable=not progress, mininterval=0.25 if tty else 5.0, dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}]"
+                          "{postfix}" if wall else None)
     thread.start()
     while thread.is_alive():
         thread.join(0.25)
         elapsed = time.monotonic() - t0
-        if progress and (tty or elapsed - last >= 5.0):
-            fused = server.stats.snapshot()[0].get("isms_fused", 0)
-            _progress_bar(elapsed, wall, fused, tty)
-            last = elapsed
-    if progress and tty:
-        print(file=sys.stderr)
+        fused = server.stats.snapshot()[0].get("isms_fused", 0)
+        bar.set_postfix_str(f"ISMs fused: {fused}", refresh=False)
+        bar.update(min(elapsed, wall or elapsed) - bar.n)
+    bar.close()
     if "stats" not in box:
         raise RuntimeError("the simulated fleet failed; see the log above")
     return box["stats"]
-
-
-def _progress_bar(elapsed: float, total: float | None, fused: int, tty: bool) -> None:
-    """One bar on a terminal (redrawn in place), a line every few seconds in a log."""
-    frac = min(1.0, elapsed / total) if total else 0.0
-    bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-    of = f"/{total:.0f}" if total else ""
-    sys.stderr.write(f"{chr(13) if tty else ''}[{bar}] {frac * 100:3.0f}%  {elapsed:5.1f}{of} s"
-                     f"  ISMs fused: {fused}{'' if tty else chr(10)}")
-    sys.stderr.flush()
 
 
 def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet: Any,
@@ -270,9 +264,15 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
     layers = [n for n in info.layers if n not in MOVING_LAYERS]  # reported on their own
     full = _world_window(world)
     sub = client.submap(**full, layers=layers, encoding="prob_f32")
-    files += _write_layers(sub, out)
-    files += _write_fused(client, full, obstacle_layers(layers), out)
-    files.append(_write_png(out / "ground_truth.png", _ground_truth_image(world, layers)))
+    markers = _robot_markers(watcher)
+    files += _write_layers(sub, out, markers)
+    files += _write_fused(client, full, obstacle_layers(layers), out, markers)
+    from sogm_service.apps.render import class_legend, save_map_png
+
+    save_map_png(out / "ground_truth.png", _ground_truth_image(world, layers), world.geometry,
+                 title="ground truth (the simulator's world)", legend=class_legend(layers),
+                 robots=markers)
+    files.append("ground_truth.png")
     latency = _robot_submaps(client, watcher, world.geometry.resolution, out, files, layers)
     supercells = _write_supercells(client, world, watcher, out, files, layers)
     counters, rejected = server.stats.snapshot()
@@ -324,13 +324,21 @@ def _write_png(path: Path, img: npt.NDArray[np.uint8]) -> str:
     return path.name
 
 
-def _write_layers(sub: Any, out: Path) -> list[str]:
-    from sogm_service.apps.render import dominant_class_image, probability_image
+def _robot_markers(watcher: _FleetWatcher) -> list[tuple[str, float, float, float | None]]:
+    return [(robot, pose.x, pose.y, pose.yaw) for robot, pose in sorted(watcher.poses.items())]
+
+
+def _write_layers(sub: Any, out: Path, robots: list[Any]) -> list[str]:
+    from sogm_service.apps.render import save_classes_png, save_grid_png
 
     p = sub.probabilities()
-    files = [_write_png(out / f"layer_{layer.replace('/', '_')}.png", probability_image(p[k]))
-             for k, layer in enumerate(sub.layers[:PNG_LAYER_LIMIT])]
-    files.append(_write_png(out / "classes.png", dominant_class_image(p)))
+    files = []
+    for k, layer in enumerate(sub.layers[:PNG_LAYER_LIMIT]):
+        name = f"layer_{layer.replace('/', '_')}.png"
+        save_grid_png(out / name, p[k], sub.geometry, title=f"layer {layer}", robots=robots)
+        files.append(name)
+    save_classes_png(out / "classes.png", p, sub.geometry, list(sub.layers), robots=robots)
+    files.append("classes.png")
     return files
 
 
@@ -340,15 +348,17 @@ def obstacle_layers(layers: list[str]) -> list[str]:
 
 
 def _write_fused(client: Any, window: dict[str, Any], layers: list[str],
-                 out: Path) -> list[str]:
+                 out: Path, robots: list[Any]) -> list[str]:
     """Eq. 6 over the obstacle-like layers: P_B (same evidence from several sensors) and P_M."""
-    from sogm_service.apps.render import probability_image
+    from sogm_service.apps.render import save_grid_png
 
     files = []
     for method in ("bayes", "max"):
         fused = client.fused(method=method, **window, layers=layers, encoding="prob_f32")
-        files.append(_write_png(out / f"fused_{method}.png",
-                                probability_image(fused.probabilities())))
+        name = f"fused_{method}.png"
+        save_grid_png(out / name, fused.probabilities(), fused.geometry,
+                      title=f"fused ({method}, Eq. 6) over {', '.join(layers)}", robots=robots)
+        files.append(name)
     return files
 
 
@@ -369,8 +379,9 @@ def _ground_truth_image(world: Any, layers: list[str]) -> npt.NDArray[np.uint8]:
 def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Path,
                    files: list[str], layers: list[str] | None = None) -> dict[str, float]:
     """A rotated window around each robot at 2x the map's cell size; timed queries."""
-    from sogm_service.apps.render import dominant_class_image
+    from sogm_service.apps.render import save_classes_png
 
+    robots = _robot_markers(watcher)
     timings: list[float] = []
     res = 2 * map_res
     side = 256 * res
@@ -380,8 +391,9 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
             t0 = time.perf_counter()
             sub = client.submap(**window, layers=layers, encoding="prob_u8")
             timings.append(time.perf_counter() - t0)
-        files.append(_write_png(out / f"submap_{robot}.png",
-                                dominant_class_image(sub.probabilities(), scale=2)))
+        save_classes_png(out / f"submap_{robot}.png", sub.probabilities(), sub.geometry,
+                         list(sub.layers), title=f"sub-map around {robot}", robots=robots)
+        files.append(f"submap_{robot}.png")
     if not timings:
         return {}
     ms = np.array(timings) * 1e3
@@ -392,7 +404,7 @@ def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Pat
 def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path,
                       files: list[str], layers: list[str] | None = None) -> int | None:
     """The SEVDS graph of a 128 x 128 cell window around the first robot, over the fused map."""
-    from sogm_service.apps.render import draw_graph
+    from sogm_service.apps.render import save_graph_png
 
     if not watcher.poses:
         return None
@@ -403,7 +415,8 @@ def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path
     reply = client.supercells(**window, labels=True, layers=layers)
     fused = client.fused(method="max", **window, layers=obstacle_layers(reply.layers),
                          encoding="prob_f32")
-    files.append(_write_png(out / "supercells.png", draw_graph(reply, fused, scale=3)))
+    save_graph_png(out / "supercells.png", reply, fused, robots=_robot_markers(watcher))
+    files.append("supercells.png")
     return len(reply.nodes)
 
 

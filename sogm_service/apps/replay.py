@@ -12,7 +12,6 @@ summary counts every line type read and skipped.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -224,15 +223,22 @@ def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: flo
 
 
 def _wait_fused(client: Any, n: int, timeout: float = 120.0) -> int:
+    import sys
     import time
 
+    from tqdm import tqdm
+
     deadline = time.monotonic() + timeout
-    while True:
-        c = client.stats().counters
-        done = c.get("isms_fused", 0) + c.get("isms_rejected", 0)
-        if done >= n or time.monotonic() > deadline:
-            return int(c.get("isms_fused", 0))
-        time.sleep(0.1)
+    # The server's progress through the scans, with the time left (a terminal only).
+    with tqdm(total=n, desc="replay", unit="ISM", file=sys.stderr, disable=None,
+              mininterval=0.25) as bar:
+        while True:
+            c = client.stats().counters
+            done = c.get("isms_fused", 0) + c.get("isms_rejected", 0)
+            bar.update(min(done, n) - bar.n)
+            if done >= n or time.monotonic() > deadline:
+                return int(c.get("isms_fused", 0))
+            time.sleep(0.1)
 
 
 def _bounds_window(scans: list[Any], resolution: float, margin: float = 10.0) -> dict[str, Any]:
@@ -247,11 +253,9 @@ def _bounds_window(scans: list[Any], resolution: float, margin: float = 10.0) ->
 
 
 def _write(result: ReplayResult, png: Path, npy: Path | None) -> None:
-    import cv2
+    from sogm_service.apps.render import save_grid_png
 
-    from sogm_service.apps.render import probability_image
-
-    scale = max(1, math.floor(800 / max(result.probabilities.shape)))
-    cv2.imwrite(str(png), probability_image(result.probabilities, scale=scale))
+    save_grid_png(png, result.probabilities, result.geometry,
+                  title=f"replay: {result.scans} scans, {result.isms_fused} fused")
     if npy is not None:
         np.save(npy, result.probabilities)

@@ -276,8 +276,11 @@ def mosaic(store: DirectoryStore, lattice: TileLattice, i0: int, j0: int, i1: in
 
 
 def _load_tiles(store: DirectoryStore, indices: list[TileIndex]) -> list[StoredTile]:
+    from tqdm import tqdm
+
     tiles = []
-    for i, j in indices:
+    for i, j in tqdm(indices, desc="tiles export", unit="tile", file=sys.stderr, disable=None,
+                     leave=False):
         tile = store.load(i, j)
         if tile is not None:
             tiles.append(tile)
@@ -371,7 +374,11 @@ def cmd_import(args: argparse.Namespace, out: TextIO) -> int:
     try:
         stores: dict[MapKey, DirectoryStore] = {}
         counts = {"imported": 0, "skipped": 0, "rejected": 0}
-        for path in _source_files(args.sources):
+        from tqdm import tqdm
+
+        files = _source_files(args.sources)
+        for path in tqdm(files, desc="tiles import", unit="tile", file=sys.stderr,
+                         disable=None, leave=False):
             outcome = _import_one(path, stores, dest, args.on_conflict)
             counts[outcome.split(":")[0]] += 1
             print(f"{outcome.split(':')[0]:<8} {path}{_detail(outcome)}", file=out)

@@ -208,3 +208,12 @@ def sevds(stack: npt.ArrayLike, params: SevdsParams | None = None) -> SevdsResul
                          float(p.gamma), p.criterion == "energy")
     return SevdsResult(np.ascontiguousarray(labels, dtype=np.int32), hist, int(moves))
 
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every SEVDS kernel with the argument types the
+    server's queries use: one small segmentation of each criterion."""
+    rng = np.random.default_rng(0)
+    stack = rng.random((2, 32, 32), dtype=np.float32)
+    for criterion in CRITERIA:
+        sevds(stack, SevdsParams(criterion=criterion))

@@ -1,14 +1,21 @@
 """The numba kernels of SEVDS (:mod:`sogm_service.core.sevds`): the block and pixel sweeps.
 
 Kept apart from the public function so that importing the parameters does not load numba.
-Every kernel is ``cache=True``; see :mod:`sogm_service.apps.warmup` for where the cache lives.
+Every kernel is ``cache=True``; :mod:`sogm_service.core.numba_cache` picks where the cache
+lives (a writable directory even in a read-only install) before numba is imported, and the
+server compiles them in the background at start (:func:`sogm_service.core.sevds.warm_up`).
 """
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import numpy.typing as npt
+
+from sogm_service.core.numba_cache import ensure_cache_dir
+
+ensure_cache_dir()
+
+import numba  # noqa: E402  (after the cache directory is chosen)
 
 # Numerical noise of the running moments; a move must gain more than this.
 _EPS = 1e-12

@@ -195,23 +195,21 @@ RUNNERS: dict[str, Callable[[npt.NDArray[np.float32], int, Params], Labels]] = {
 
 
 class _Progress:
-    """A plain ``\\r`` progress line on stderr (no tqdm dependency)."""
+    """A tqdm bar on stderr with the time left (a line every 10 s when not a terminal)."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        self.total, self.done, self.enabled, self.t0 = max(1, total), 0, enabled, time.time()
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=max(1, total), desc="eval supercells", file=sys.stderr,
+                        disable=not enabled,
+                        mininterval=0.25 if sys.stderr.isatty() else 10.0)
 
     def step(self, what: str) -> None:
-        self.done += 1
-        if self.enabled:
-            pct = 100.0 * self.done / self.total
-            sys.stderr.write(f"\r[eval supercells] {pct:5.1f}% {time.time() - self.t0:6.1f}s "
-                             f"{what:<40.40}")
-            sys.stderr.flush()
+        self.bar.set_postfix_str(what[:40], refresh=False)
+        self.bar.update(1)
 
     def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
+        self.bar.close()
 
 
 def _objective(labels: Labels, scene: Scene) -> float:

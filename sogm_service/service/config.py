@@ -28,7 +28,9 @@ from sogm_service.wire.messages import GeodeticFix
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    # Strict: ``resolution = "0.1"`` (a string) is refused, not read as a number; paths are
+    # the one exception (TOML has no path type).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 class MapSettings(_Section):
@@ -83,7 +85,7 @@ class TileSettings(_Section):
 
 
 class StorageSettings(_Section):
-    directory: Path | None = None
+    directory: Annotated[Path, Field(strict=False)] | None = None
     checkpoint_interval_s: Annotated[float, Field(gt=0)] = 10.0
     memory_budget_mb: Annotated[float, Field(gt=0)] = 1024.0
 
@@ -153,7 +155,7 @@ class ZenohSettings(_Section):
     mode: Literal["peer", "client", "router"] = "peer"
     listen: list[str] = []
     connect: list[str] = []
-    config_file: Path | None = None
+    config_file: Annotated[Path, Field(strict=False)] | None = None
     multicast_scouting: bool = False
 
 

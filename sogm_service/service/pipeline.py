@@ -32,6 +32,7 @@ from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.core.resample import Interp
 from sogm_service.core.tiles import TiledMap
 from sogm_service.core.tiletypes import TileIndex
+from sogm_service.service.acks import IsmOutcomes
 from sogm_service.service.admission import Admission
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
@@ -63,6 +64,7 @@ class IsmItem:
     msg: IsmMessage | None = None
     layer: str = ""
     robot: str | None = None
+    ism_id: str | None = None  # asks for an acknowledgement (service/acks.py)
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,6 +134,8 @@ class IngestPipeline:
         self.fusers = fusers
         self.rejections = Rejections(stats, config.limits.log_text_chars)
         self.admission = Admission(config, stats)
+        # What became of each ISM, for its publisher (service/acks.py); set by the server.
+        self.outcomes: IsmOutcomes | None = None
 
     def handle(self, item: IsmItem) -> None:
         """Decode, validate, prepare, check and align one ISM, then hand it to the fuse
@@ -145,13 +149,15 @@ class IngestPipeline:
             self.tiled.layer_id(ism.layer, create=True)  # layers in arrival order, any K
             self.fusers.submit(FuseJob(
                 ism.layer, ism.increments, ism.geometry, self.config.ism[ism.source].interp,
-                ism.msg.stamp, done=partial(self._fused, ism, started),
+                ism.msg.stamp, done=partial(self._fused, ism, started, item=item),
                 **self.identity(item, ism.msg)))
         except SogmError as exc:
             self.rejections.reject(exc.code, f"{item.key}: {exc}")
+            self.report(item, exc.code, str(exc))
         except Exception as exc:  # never let one ISM kill the worker
             log.exception("internal error on ISM from %s", item.key[:200])
             self.rejections.reject("internal_error", f"{item.key}: {type(exc).__name__}: {exc}")
+            self.report(item, "internal_error", f"{type(exc).__name__}: {exc}")
 
     def decode(self, item: IsmItem) -> IsmMessage:
         if item.msg is not None:  # decoded and validated by its adapter
@@ -182,20 +188,23 @@ class IngestPipeline:
         return replace(ism, increments=inc, geometry=geometry)
 
     def _fused(self, ism: PreparedIsm, started: float, touched: list[TileIndex],
-               error: BaseException | None) -> None:
+               error: BaseException | None, item: IsmItem | None = None) -> None:
         """The last fuse worker is done with ``ism``: count it and do the bookkeeping."""
         if error is not None:
             log.error("internal error fusing the ISM from %s: %r", ism.key, error)
             self.rejections.reject("internal_error",
                                    f"{ism.key}: {type(error).__name__}: {error}")
+            self.report(item, "internal_error", f"{type(error).__name__}: {error}")
             return
         try:
             self.bookkeeping(ism, touched)
         except Exception as exc:
             log.exception("internal error after fusing the ISM from %s", ism.key)
             self.rejections.reject("internal_error", f"{ism.key}: {type(exc).__name__}: {exc}")
+            self.report(item, "internal_error", f"{type(exc).__name__}: {exc}")
             return
         self.stats.fused()
+        self.report(item, None, "fused")
         self.stats.latency("fuse", time.perf_counter() - started)
 
     def bookkeeping(self, ism: PreparedIsm, touched: list[TileIndex]) -> None:
@@ -213,3 +222,8 @@ class IngestPipeline:
 
         payload = item.payload or bytes(msg.data) + repr(msg.stamp).encode()
         return {"key": item.key, "digest": ism_digest(payload)}
+
+    def report(self, item: IsmItem | None, code: str | None, message: str) -> None:
+        """Tell the ISM's publisher: fused (``code`` None) or rejected (service/acks.py)."""
+        if self.outcomes is not None and item is not None:
+            self.outcomes.outcome(item.key, item.source, item.ism_id, code, message)

@@ -21,6 +21,7 @@ Threads and why (DESIGN.md sections 2-4):
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -31,6 +32,7 @@ from pydantic import BaseModel
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.tiles import TiledMap
 from sogm_service.service import queries
+from sogm_service.service.acks import IsmOutcomes, ism_id_of
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.cluster import Cluster
 from sogm_service.service.config import ServiceConfig
@@ -43,8 +45,9 @@ from sogm_service.service.replication import Replication
 from sogm_service.service.session import open_session
 from sogm_service.service.stats import Stats
 from sogm_service.wire import codec
-from sogm_service.wire.errors import SogmError
+from sogm_service.wire.errors import QueryError, SogmError
 from sogm_service.wire.keys import QUERYABLES, last_chunk
+from sogm_service.wire.limits import WARMUP_WAIT_S
 from sogm_service.wire.messages import (
     ErrorReply,
     FusedRequest,
@@ -86,6 +89,9 @@ class MapServer:
         if config.cluster.enabled:
             self.cluster = Cluster(config, self.map, self.tiles, self.stats, self.fusers,
                                    lambda t: self.wait_idle(t) and self.fusers.drain(t))
+        self.outcomes = IsmOutcomes(self.keys, [s.key_expr for s in config.ism])
+        self.pipeline.outcomes = self.outcomes
+        self.warmed_up = threading.Event()  # the SEVDS kernels are compiled or loaded
         self._owns_session = session is None
         self._session = session
         self._declared: list[Any] = []
@@ -114,6 +120,8 @@ class MapServer:
             self._ros2 = Ros2Link(self.config, self._session, self.map, self._queue, self.fleet,
                                   self.stats, self.pipeline.rejections)
         self.tiles.start()
+        self.outcomes.attach(self._session.put)
+        self._start_warm_up()
         log.info("serving map %r (frame %s, %.3f m) as %s; ISMs on %s", self.config.map.name,
                  self.config.map.frame, self.config.map.resolution, self.server_id,
                  [s.key_expr for s in self.config.ism])
@@ -147,6 +155,8 @@ class MapServer:
         if self.cluster is not None:  # pulls the tiles it will own before declaring itself
             self.cluster.join(s, self.server_id)
         self._declared.append(s.liveliness().declare_token(self.keys.server_token(self.server_id)))
+        self._declared.append(s.declare_queryable(self.keys.ack,
+                                                  self._guarded("ack", self._on_ack)))
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop accepting work, finish what is queued, flush the store, close the session."""
@@ -156,6 +166,7 @@ class MapServer:
         self._queue.close()
         if self.cluster is not None:
             self.cluster.close()
+        self.outcomes.attach(None)
         for entity in reversed(self._declared):
             try:
                 entity.undeclare()
@@ -184,12 +195,16 @@ class MapServer:
         def on_ism(sample: zenoh.Sample) -> None:
             self.stats.count("isms_received")
             payload = sample.payload.to_bytes()
+            key = str(sample.key_expr)
+            attachment = sample.attachment
+            ism_id = ism_id_of(attachment.to_bytes()) if attachment is not None else None
+            self.outcomes.queued(ism_id, key)
             if len(payload) > limit:  # refused before it can occupy the queue
-                self.pipeline.rejections.reject(
-                    "too_large", f"{sample.key_expr}: payload of {len(payload)} bytes exceeds "
-                                 f"{limit}")
+                text = f"payload of {len(payload)} bytes exceeds {limit}"
+                self.pipeline.rejections.reject("too_large", f"{key}: {text}")
+                self.outcomes.outcome(key, source, ism_id, "too_large", text)
                 return
-            self._queue.put(IsmItem(source, str(sample.key_expr), payload))
+            self._queue.put(IsmItem(source, key, payload, ism_id=ism_id))
         return on_ism
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
@@ -255,6 +270,7 @@ class MapServer:
 
     def _on_supercells(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SupercellRequest, *self.params(q))
+        self.wait_warm(WARMUP_WAIT_S)
         with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
             window, layers, stack = queries.supercell_input(
                 self.query_map(), req, self.config.limits.max_query_cells,
@@ -302,3 +318,39 @@ class MapServer:
     def all_tiles(self) -> set[tuple[int, int]]:
         """Every tile of the map: in a cluster, every member's."""
         return self.map.known_tiles() if self.cluster is None else self.cluster.all_tiles()
+
+    # -- publishers hear back, and the first supercells query -----------------------------
+    def _on_ack(self, q: zenoh.Query) -> BaseModel:
+        params, _ = self.params(q)
+        ism_id = params.get("id", "")
+        if ism_id_of(ism_id.encode("utf-8", "replace")) is None:
+            raise QueryError("bad_parameter", "id must be an ISM id (1-64 characters of "
+                                              "[A-Za-z0-9_.-])", "id")
+        return self.outcomes.lookup(ism_id)
+
+    def _start_warm_up(self) -> None:
+        """Compile (or load from numba's cache) the SEVDS kernels in the background, so the
+        first supercells query does not pay for it (7 s cold on a busy 2-core machine)."""
+        if self.warmed_up.is_set():
+            return
+
+        def run() -> None:
+            started = time.perf_counter()
+            try:
+                from sogm_service.core.sevds import warm_up
+
+                warm_up()
+                log.info("supercell kernels ready in %.1f s",
+                         time.perf_counter() - started)
+            except Exception:  # the query will compile (and report) if this failed
+                log.exception("warming up the supercell kernels failed")
+            finally:
+                self.warmed_up.set()
+        threading.Thread(target=run, name="sogm-warm-up", daemon=True).start()
+
+    def wait_warm(self, budget_s: float) -> None:
+        """Wait up to ``budget_s`` for the warm-up; refuse with ``warming_up`` after that."""
+        if not self.warmed_up.wait(budget_s):
+            raise QueryError("warming_up", "the supercell kernels are still being compiled "
+                                           "(first start after an install); retry in a few "
+                                           "seconds")

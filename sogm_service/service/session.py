@@ -11,6 +11,7 @@ from collections.abc import Callable
 import zenoh
 
 from sogm_service.service.config import ZenohSettings
+from sogm_service.wire.errors import SessionOpenError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 """Where ``serve`` listens and every client connects when told nothing else (loopback)."""
@@ -39,8 +40,14 @@ def make_config(settings: ZenohSettings) -> zenoh.Config:
 
 
 def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """Open a session; the caller must ``close()`` it (an open session keeps the process alive)."""
-    return zenoh.open(make_config(settings))
+    """Open a session; the caller must ``close()`` it (an open session keeps the process alive).
+
+    Raises :class:`~sogm_service.wire.errors.SessionOpenError` (one line, no Zenoh internals)
+    when the config or an endpoint is unusable or nothing answers on a ``connect`` endpoint."""
+    try:
+        return zenoh.open(make_config(settings))
+    except zenoh.ZError as exc:
+        raise SessionOpenError(_session_error_text(settings, exc), "zenoh") from None
 
 
 def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
@@ -79,3 +86,33 @@ def loopback_settings(*, listen: str | None = None, connect: str | None = None,
         "listen": [listen] if listen else [],
         "connect": [connect] if connect else [],
     })
+
+
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
+                      "vsock")
+
+
+def check_endpoint(endpoint: str) -> str | None:
+    """Why ``endpoint`` is not a Zenoh endpoint (``tcp/127.0.0.1:7447``), or ``None``."""
+    proto, sep, address = endpoint.partition("/")
+    if not sep:
+        return (f"endpoint {endpoint!r} names no protocol: write tcp/{endpoint} "
+                "(Zenoh endpoints are <protocol>/<address>)")
+    if proto not in ENDPOINT_PROTOCOLS:
+        return f"endpoint {endpoint!r}: unknown protocol {proto!r} (tcp, tls, udp, quic, ...)"
+    if proto in ("tcp", "udp", "tls", "quic", "ws") and ":" not in address:
+        return f"endpoint {endpoint!r} has no port: write {proto}/<host>:<port>"
+    return None
+
+
+def _session_error_text(settings: ZenohSettings, exc: Exception) -> str:
+    for endpoint in [*settings.listen, *settings.connect]:
+        why = check_endpoint(endpoint)
+        if why is not None:
+            return why
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if settings.connect and not settings.listen:
+        return f"cannot connect to {', '.join(settings.connect)}: {first[:200]}"
+    if settings.listen:
+        return f"cannot listen on {', '.join(settings.listen)}: {first[:200]}"
+    return f"cannot open a Zenoh session: {first[:200]}"

@@ -73,6 +73,8 @@ QUERY_CODES: Final[dict[str, str]] = {
     "reply_too_large": "the reply would exceed the reply byte limit",
     "busy": "too many heavy queries run at once; retry after retry_after_s",
     "no_owner": "no live owner of a tile the window needs answered in time (cluster)",
+    "warming_up": "the server is still compiling its supercell kernels (only after a fresh "
+                  "install or upgrade); the client retries within its supercells timeout",
 }
 """Why a query cannot be answered (:class:`QueryError`)."""
 
@@ -158,3 +160,32 @@ class ServiceError(SogmError, ClientError):
 
 class QueryTimeoutError(ClientError):
     """No server answered within the timeout."""
+
+
+class SessionOpenError(SogmError, RuntimeError):
+    """A Zenoh session could not be opened (a bad endpoint or config, nothing to connect to)."""
+
+    def __init__(self, message: str, parameter: str | None = None) -> None:
+        super().__init__("session_open", message, parameter)
+
+
+class ConnectError(SessionOpenError, ClientError):
+    """The client found no sogm-service (or router) at its endpoint, or its endpoint or Zenoh
+    config is unusable."""
+
+
+class InvalidIsmError(ClientError, ValueError):
+    """An ISM the client refuses to publish (not a 2-D grid, a dtype that does not fit its
+    encoding, an invalid field): nothing was sent."""
+
+
+class IsmNotFusedError(ServiceError):
+    """The server rejected a published ISM (``code`` as in :data:`DECODE_CODES` /
+    :data:`ISM_CODES`; ``key`` is the ISM's key)."""
+
+    def __init__(self, code: str, message: str, key: str) -> None:
+        super().__init__(code, message)
+        self.key = key
+
+    def __str__(self) -> str:
+        return f"the server rejected the ISM on {self.key} [{self.code}]: {self.message}"

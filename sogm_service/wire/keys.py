@@ -58,6 +58,15 @@ class MapKeys:
     def matching(self, ism_key: str) -> str:
         return self.key("matching", ism_key)
 
+    @property
+    def ack(self) -> str:
+        """The queryable that tells what became of an ISM published with an id."""
+        return self.key("ack")
+
+    def rejections(self, robot: str) -> str:
+        """Where the server reports each ISM it rejects, per robot (``*`` for all)."""
+        return self.key("rejections", robot)
+
 
 def tile_of_key(key: str) -> tuple[int, int]:
     """``(i, j)`` of a ``.../tiles/<i>/<j>`` key; ``ValueError`` for anything else."""
@@ -102,3 +111,8 @@ def ism_key(prefix: str, robot: str, sensor: str, layer: str) -> str:
 
 def pose_key(prefix: str, robot: str) -> str:
     return f"{prefix}/{robot}"
+
+
+def is_key_chunk(chunk: str) -> bool:
+    """True when ``chunk`` can be one literal chunk of a key (no wildcard, no separator)."""
+    return bool(chunk) and not any(c in chunk for c in "/*$?#") and len(chunk) <= 128

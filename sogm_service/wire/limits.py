@@ -81,3 +81,20 @@ BUSY_RETRY_S: Final = 1.0
 
 LOG_TEXT_CHARS: Final = 200
 """Rejection log lines cut every attacker-controlled string to this many characters."""
+
+WARMUP_WAIT_S: Final = 2.0
+"""How long a supercells query waits for the SEVDS kernels to finish compiling (first start
+after an install or upgrade; cached afterwards) before it answers ``warming_up``."""
+
+SUPERCELLS_TIMEOUT_S: Final = 90.0
+"""The client's default budget for a supercells query, retries on ``warming_up`` included
+(a cold numba compile took 7 s at load 4.4 on 2 cores)."""
+
+ACK_TABLE_SIZE: Final = 16384
+"""Outcomes of ISMs that asked for an acknowledgement, kept per server (the oldest go first)."""
+
+ISM_ID_PATTERN: Final = r"^[A-Za-z0-9_.\-]{1,64}$"
+"""What an ISM id (the Zenoh attachment of an ISM that asks for an acknowledgement) may be."""
+
+REJECTION_MESSAGE_CHARS: Final = 200
+"""A rejection report's message is cut to this many characters."""

@@ -392,8 +392,34 @@ class ErrorReply(WireModel):
     retry_after_s: float | None = None  # with ``busy``: when to ask again (seconds)
 
 
+class RejectionReport(WireModel):
+    """An ISM the server rejected, published on ``<prefix>/<map>/rejections/<robot>`` (the
+    robot chunk of the ISM's key) so the publisher hears why."""
+
+    schema_name: ClassVar[str] = "rejection"
+    key: str
+    code: str
+    message: str
+    stamp: float
+    id: str | None = None  # the ISM's id when it was published with one (the attachment)
+
+
+class IsmAck(WireModel):
+    """What became of an ISM published with an id (queryable ``<prefix>/<map>/ack?id=...``):
+    ``queued`` (received, not yet fused), ``fused`` (in the map: a query sees it),
+    ``rejected`` (``code``, ``message``) or ``unknown`` (never received, or too long ago)."""
+
+    schema_name: ClassVar[str] = "ism_ack"
+    id: str
+    status: Literal["queued", "fused", "rejected", "unknown"]
+    key: str = ""
+    code: str | None = None
+    message: str = ""
+    stamp: float = 0.0
+
+
 SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
     IsmMessage, PoseMessage, SubmapRequest, FusedRequest, SupercellRequest, GridReply,
     FusedReply, SupercellReply, TileEvent, RobotTilesReply, MatchReport, InfoReply, StatsReply,
-    ErrorReply,
+    ErrorReply, RejectionReport, IsmAck,
 )
