@@ -12,7 +12,7 @@ import zenoh
 from sogm_service.wire import codec
 from sogm_service.wire.messages import PoseMessage
 from tests.conftest import start_server, wait_until
-from tests.test_bounds_ism import RSS_BOUND_MB, rss_mb
+from tests.test_bounds_ism import RSS_BOUND_MB, baseline_rss_mb, rss_mb
 
 ROBOTS = 200
 POSES_PER_ROBOT = 50
@@ -25,7 +25,7 @@ def test_a_pose_flood_is_coalesced_and_every_pose_counted(tmp_path: Path) -> Non
     srv = start_server(tmp_path, {"limits": {"max_pending_poses": 64}})
     try:
         with srv.client() as c:
-            before = rss_mb(srv.proc.pid)
+            before = baseline_rss_mb(c, srv.proc.pid)
             pubs = {f"r{k}": c.session.declare_publisher(
                 f"pose/r{k}", congestion_control=zenoh.CongestionControl.BLOCK)
                 for k in range(ROBOTS)}

@@ -20,7 +20,7 @@ from sogm_service.wire import codec
 from sogm_service.wire.errors import QUERY_CODES, BusyError, ServiceError
 from sogm_service.wire.messages import ErrorReply
 from tests.conftest import ServerProcess, start_server, wait_processed
-from tests.test_bounds_ism import RSS_BOUND_MB, rss_mb
+from tests.test_bounds_ism import RSS_BOUND_MB, baseline_rss_mb, rss_mb
 
 SPECIFIC = {"bad_parameter", "window_too_large", "out_of_world", "reply_too_large",
             "unknown_layer"}
@@ -107,7 +107,7 @@ def test_no_window_parameters_cause_an_internal_error(
 def test_a_burst_of_large_windows_keeps_rss_and_the_map(srv: ServerProcess) -> None:
     with srv.client() as c:
         before_map = c.submap(width=10, height=10, encoding="logodds_i16").data.tobytes()
-        before = rss_mb(srv.proc.pid)
+        before = baseline_rss_mb(c, srv.proc.pid)
         for k in range(30):
             for params in ({"width": 400, "height": 400, "resolution": 4},
                            {"width": 210, "height": 210, "resolution": 2 + k / 100},

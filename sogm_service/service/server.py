@@ -295,6 +295,7 @@ class MapServer:
             "tiles_known": len(self.map.known_tiles()),
             "resident_mb": round(self.map.resident_bytes() / 1e6, 3),
             "fuse_workers": self.fusers.workers,
+            "kernels_ready": self.warmed_up.is_set(),
         }
         extra["robots"] = self.fleet.robot_count()
         extra.update(self.tiles.stats_extra())
