@@ -125,3 +125,25 @@ def _replay_window(scans: list) -> GridGeometry:  # type: ignore[type-arg]
 
     w = _bounds_window(scans, 0.05)
     return window_geometry(w["x"], w["y"], w["yaw"], w["width"], w["height"], w["resolution"])
+
+
+@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+def test_replay_into_a_running_server_through_a_zenoh_config_file(tmp_path: Path) -> None:
+    """``--zenoh-config`` alone reaches the server: the file (not --connect) names where."""
+    import json
+
+    from sogm_service.client import MapClient
+    from tests.conftest import start_server
+
+    srv = start_server(tmp_path)
+    try:
+        config = tmp_path / "robot.json5"
+        config.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [srv.endpoint]},
+                                      "scouting": {"multicast": {"enabled": False}}}))
+        png = tmp_path / "intel.png"
+        assert cli_main(["replay", "carmen", str(LOG), "--limit", "20", "--zenoh-config",
+                         str(config), "--png", str(png)]) == 0
+        with MapClient.connect(srv.endpoint) as client:
+            assert client.stats().counters.get("isms_fused") == 20
+    finally:
+        assert srv.terminate() == 0

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("file", type=Path)
     c.add_argument("--connect", default=None,
                    help="endpoint of a running server (default: an embedded one)")
+    c.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="Zenoh JSON5 config of a running server's site, honoured as is (e.g. "
+                        "a robot's from 'sogm-service certs'); replaces --connect")
     c.add_argument("--map", default="default", help="map name of that server")
     c.add_argument("--resolution", type=float, default=0.05, help="ISM and map cell size (m)")
     c.add_argument("--limit", type=int, default=None, help="replay at most this many scans")
@@ -61,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("file", type=Path, help="the bag (a ROS 2 bag is its directory)")
     b.add_argument("--connect", default=None,
                    help="endpoint of a running server (default: an embedded one)")
+    b.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="Zenoh JSON5 config of a running server's site, honoured as is; "
+                        "replaces --connect")
     b.add_argument("--map", default="default", help="map name of that server")
     b.add_argument("--map-frame", default="map", help="the TF frame of the map")
     b.add_argument("--resolution", type=float, default=0.05, help="laser ISM cell size (m)")
@@ -70,8 +77,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_ZENOH_CONFIG: ContextVar[Path | None] = ContextVar("zenoh_config", default=None)
+"""The ``--zenoh-config`` of this replay: every session it opens (its robot's, its client's)
+comes from that file, as it is."""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.zenoh_config is not None:  # a running server, reached as the file says
+        _ZENOH_CONFIG.set(args.zenoh_config)
+        args.connect = args.connect or f"(the endpoints of {args.zenoh_config})"
     if not args.file.exists():
         print(f"sogm-service replay: no such file {args.file}", file=sys.stderr)
         return 2
@@ -118,8 +133,9 @@ def replay_rosbag(path: Path, *, endpoint: str | None = None, map_name: str = "d
         from sogm_service.wire import codec
 
         if scans:
-            replay_scans(scans, ep, robot=robot, resolution=resolution, speed=0.0)
-        with MapClient.connect(ep, map_name=map_name) as client:
+            replay_scans(scans, ep, robot=robot, resolution=resolution, speed=0.0,
+                         zenoh_config=_ZENOH_CONFIG.get())
+        with MapClient.connect(ep, map_name=map_name, zenoh_config=_ZENOH_CONFIG.get()) as client:
             for grid in grids:
                 client.publish_raw(f"ism/{grid.layer}", codec.encode(grid.ism))
 
@@ -155,7 +171,8 @@ def _collect(endpoint: str, publish: Any, n: int, scans: list[Any], grids: list[
     from sogm_service.service.client import MapClient
 
     publish(endpoint)
-    with MapClient.connect(endpoint, map_name=map_name, timeout=30.0) as client:
+    with MapClient.connect(endpoint, map_name=map_name, timeout=30.0,
+                           zenoh_config=_ZENOH_CONFIG.get()) as client:
         fused = _wait_fused(client, n)
         info = client.info()
         if not info.layers or info.bounds is None:
@@ -206,8 +223,10 @@ def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: flo
     from sogm_service.service.client import MapClient
     from sogm_service.sim.fleet import replay_scans
 
-    replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed, grid=grid)
-    with MapClient.connect(endpoint, map_name=map_name, timeout=30.0) as client:
+    replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed, grid=grid,
+                 zenoh_config=_ZENOH_CONFIG.get())
+    with MapClient.connect(endpoint, map_name=map_name, timeout=30.0,
+                           zenoh_config=_ZENOH_CONFIG.get()) as client:
         fused = _wait_fused(client, len(scans))
         layer = f"{robot}/laser/obstacle"
         info = client.info()

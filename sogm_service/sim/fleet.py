@@ -164,7 +164,7 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
                  usable_range: float = DEFAULT_USABLE_RANGE, speed: float = 1.0,
                  encoding: str = "occupancy_i8", ism_prefix: str = "ism",
                  pose_prefix: str = "pose", stop: threading.Event | None = None,
-                 grid: str = "lattice") -> FleetStats:
+                 grid: str = "lattice", zenoh_config: Path | None = None) -> FleetStats:
     """Publish recorded scans (e.g. :func:`sogm_service.adapters.carmen.read_carmen`) as one robot.
 
     Per scan: the laser pose on ``pose/<robot>`` and its ISM
@@ -182,7 +182,7 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
     stats = FleetStats()
     t_wall0 = time.monotonic()
     link = RobotLink(robot, endpoint, ism_prefix=ism_prefix, pose_prefix=pose_prefix,
-                     encoding=encoding)
+                     encoding=encoding, zenoh_config=zenoh_config)
     try:
         stamp0: float | None = None
         for scan in scans:
