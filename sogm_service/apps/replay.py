@@ -85,8 +85,15 @@ comes from that file, as it is."""
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.zenoh_config is not None:  # a running server, reached as the file says
-        _ZENOH_CONFIG.set(args.zenoh_config)
         args.connect = args.connect or f"(the endpoints of {args.zenoh_config})"
+    token = _ZENOH_CONFIG.set(args.zenoh_config)
+    try:
+        return _replay(args)
+    finally:
+        _ZENOH_CONFIG.reset(token)
+
+
+def _replay(args: argparse.Namespace) -> int:
     if not args.file.exists():
         print(f"sogm-service replay: no such file {args.file}", file=sys.stderr)
         return 2
