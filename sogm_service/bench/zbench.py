@@ -97,7 +97,8 @@ def _config(directory: Path, listen: str, queue_size: int = 64) -> Path:
     path = directory / "server.toml"
     path.write_text(f'[map]\nresolution = {MAP_RES}\n\n[zenoh]\nlisten = ["{listen}"]\n\n'
                     f'[limits]\nqueue_size = {queue_size}\n'
-                    f'fuse_workers = {os.environ.get("SOGM_BENCH_WORKERS", "2")}\n',
+                    + (f'fuse_workers = {os.environ["SOGM_BENCH_WORKERS"]}\n'
+                       if os.environ.get("SOGM_BENCH_WORKERS") else ""),
                     encoding="utf-8")
     return path
 

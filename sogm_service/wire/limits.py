@@ -28,9 +28,11 @@ MAX_QUERY_CELLS: Final = 4096 * 4096
 QUEUE_SIZE: Final = 64
 """ISMs waiting between the Zenoh callbacks and the ingestion worker."""
 
-FUSE_WORKERS: Final = 2
-"""Threads that fuse ISMs, each over its own share of the tiles (results are the same for any
-number); more than the machine's cores buys nothing."""
+FUSE_WORKERS: Final = 1
+"""Threads that fuse ISMs, each over its own share of the tiles (the map is the same for any
+number).  1 on a 2-core machine: measured there, the server ingests 2199 ISM/s with 1 worker
+and 1636 with 2 (the GIL-held Python per tile and OpenCV's own threads leave no core to gain);
+raise it on machines with cores to spare and measure with ``sogm-service bench ingest``."""
 
 LAYER_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-./]{1,128}$"
 """What a layer name may be: up to 128 characters of ``[A-Za-z0-9_-./]``."""
