@@ -46,3 +46,26 @@ def test_secure_demo_runs_end_to_end_through_mtls_and_access_control(tmp_path: P
     assert "tls/" in server_conf and "access_control" in server_conf
     for name in ("ca.crt", "robot1.crt", "robot2.key", "viewer.json5"):
         assert (out / "pki" / name).exists(), name
+
+
+def test_demo_drives_a_running_server_through_a_zenoh_config_file(tmp_path: Path) -> None:
+    """``demo --zenoh-config``: no embedded server; robots and queries open their sessions
+    from the file and fill a running server's map."""
+    from tests.conftest import start_server
+
+    srv = start_server(tmp_path, {"map": {"name": "demo"}})
+    try:
+        config = tmp_path / "site.json5"
+        config.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [srv.endpoint]},
+                                      "scouting": {"multicast": {"enabled": False}}}))
+        out = tmp_path / "demo"
+        result = run_demo(world="warehouse", robots=2, duration_s=4.0, rate_hz=4.0, seed=3,
+                          out=out, realtime=False, progress=False, zenoh_config=config)
+        assert result.isms_fused == result.isms_published > 0
+        assert (out / "classes.png").stat().st_size > 0
+        from sogm_service.client import MapClient
+
+        with MapClient.connect(srv.endpoint, map_name="demo") as client:
+            assert client.stats().counters["isms_fused"] == result.isms_fused
+    finally:
+        assert srv.terminate() == 0

@@ -67,6 +67,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "the run the map stays up until Ctrl-C")
     p.add_argument("--http", default="127.0.0.1:8080", metavar="HOST:PORT",
                    help="where --view serves its page (default %(default)s, loopback)")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="drive the fleet and the queries into a running server instead of an "
+                        "embedded one: every session of the demo opens from FILE as it is "
+                        "(its map must be --map)")
+    p.add_argument("--map", default="demo", help="map name (default %(default)s)")
     p.add_argument("--secure", action="store_true",
                    help="run everything through a fresh dev PKI (DIR/pki): mutual TLS and the "
                         "access-control rules of 'sogm-service certs', one identity per robot")
@@ -79,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     result = run_demo(world=world, robots=args.robots, duration_s=args.duration,
                       rate_hz=args.rate, seed=args.seed, out=args.out,
                       realtime=not args.fast, speed=args.speed, progress=not args.quiet,
-                      secure=args.secure, view=args.http if args.view else None)
+                      secure=args.secure, view=args.http if args.view else None,
+                      zenoh_config=args.zenoh_config, map_name=args.map)
     _print_summary(result, args.out)
     return 0
 
@@ -87,14 +93,17 @@ def main(argv: list[str] | None = None) -> int:
 def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 60.0,
              rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
              realtime: bool = True, speed: float = 3.0, progress: bool = True,
-             secure: bool = False, view: str | None = None) -> DemoResult:
+             secure: bool = False, view: str | None = None, zenoh_config: Path | None = None,
+             map_name: str = "demo") -> DemoResult:
     """Run the whole demo; returns its summary (and writes every file into ``out``).
 
     ``secure``: a fresh dev PKI in ``out/pki`` (:func:`sogm_service.apps.certs.init_pki`); the
     server, each robot and the demo's own client (a viewer) open their sessions from their
     identity's config: mutual TLS and access control by certificate name, end to end.
     ``view``: serve the live viewer on that ``HOST:PORT`` during the run, and after it until
-    SIGINT/SIGTERM."""
+    SIGINT/SIGTERM.  ``zenoh_config``: no embedded server; the robots and the demo's client
+    open their sessions from that file (as it is) and drive a running server's map
+    ``map_name``."""
     from sogm_service.service.client import MapClient
     from sogm_service.service.server import MapServer
     from sogm_service.service.session import free_tcp_endpoint
@@ -111,17 +120,27 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
         zenoh = {"config_file": str(configs["server"])}
     from sogm_service.apps.demo_moving import forgetting_config
 
-    server = MapServer(forgetting_config(_config(w.geometry.resolution, zenoh, out), w)).start()
+    server: Any
+    if zenoh_config is not None:  # a running server: every session from the file
+        configs = {f"robot{i + 1}": zenoh_config for i in range(robots)}
+        configs["viewer"] = zenoh_config
+        server = _Remote(map_name, zenoh_config)
+    else:
+        server = MapServer(forgetting_config(_config(w.geometry.resolution, zenoh, out),
+                                             w)).start()
     viewer = None
     try:
         if view is not None:
-            viewer = _start_viewer(endpoint, view, configs.get("viewer"))
-        with MapClient.connect(endpoint, map_name="demo", timeout=10.0,
+            viewer = _start_viewer(endpoint, view, configs.get("viewer"), map_name)
+        with MapClient.connect(endpoint, map_name=map_name, timeout=10.0,
                                zenoh_config=configs.get("viewer")) as client:
             watcher = _FleetWatcher(client, out / "tile_events.log")
             fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
                            server, progress, configs)
-            server.wait_idle(timeout=60.0)
+            if isinstance(server, _Remote):
+                server.wait_idle(60.0, published=fleet.isms)
+            else:
+                server.wait_idle(timeout=60.0)
             result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out)
             watcher.close()
         if viewer is not None:
@@ -137,10 +156,40 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     return result
 
 
-def _start_viewer(endpoint: str, http: str, zenoh_config: Path | None) -> Any:
+class _Remote:
+    """A running server the demo did not start (``demo --zenoh-config``): its counters and
+    "idle" through a client of its own, nothing to stop."""
+
+    def __init__(self, map_name: str, zenoh_config: Path) -> None:
+        from sogm_service.service.client import MapClient
+
+        self._client = MapClient.connect(map_name=map_name, zenoh_config=zenoh_config,
+                                         timeout=10.0)
+        self.stats = self
+
+    def snapshot(self) -> tuple[dict[str, int], dict[str, int]]:
+        reply = self._client.stats()
+        return dict(reply.counters), dict(reply.rejected)
+
+    def wait_idle(self, timeout: float, published: int = 0) -> bool:
+        """Until the server handled at least as many ISMs as the fleet published."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            counters, _ = self.snapshot()
+            if counters.get("isms_fused", 0) + counters.get("isms_rejected", 0) >= published:
+                return True
+            time.sleep(0.1)
+        return False
+
+    def stop(self) -> None:
+        self._client.close()
+
+
+def _start_viewer(endpoint: str, http: str, zenoh_config: Path | None,
+                  map_name: str = "demo") -> Any:
     from sogm_service.apps.viewer import start_viewer
 
-    args = ["--connect", endpoint, "--map", "demo", "--http", http]
+    args = ["--connect", endpoint, "--map", map_name, "--http", http]
     if zenoh_config is not None:
         args += ["--zenoh-config", str(zenoh_config)]
     viewer = start_viewer(args)
