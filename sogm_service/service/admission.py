@@ -17,7 +17,7 @@ nothing; the caller counts and logs it as every other refusal.  The arithmetic l
 from __future__ import annotations
 
 import threading
-from collections.abc import Container, Iterable, Iterator
+from collections.abc import Callable, Container, Iterable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
@@ -50,6 +50,9 @@ class Admission:
         self.span = config.map.resolution * config.map.tile_size
         self._has_store = config.storage.directory is not None
         self._budget = int(config.storage.memory_budget_mb * 1e6)
+        # With a store: whether its writer is saturated (then nothing more can be evicted and
+        # new tiles are priced as without a store).  Set by the pipeline.
+        self.store_backlog: Callable[[], bool] | None = None
         self._heavy = threading.BoundedSemaphore(self.limits.max_heavy_queries)
 
     # -- ISMs -----------------------------------------------------------------------------
@@ -95,15 +98,20 @@ class Admission:
         if new_layer and n_layers >= self.limits.max_layers:
             raise IsmRejectedError("too_many_layers", f"the map has {n_layers} layers, "
                                    f"the limit; refusing layer {layer[:64]!r}", "layer")
-        if not self._has_store:
+        backlog = self._has_store and self.store_backlog is not None and self.store_backlog()
+        if not self._has_store or backlog:
             self._check_memory(foot, tiled.tiles, tiled.resident_bytes(),
-                               n_layers + int(new_layer), new_layer)
+                               n_layers + int(new_layer), new_layer,
+                               "the tile store's writer is saturated (max_writer_queue_mb)"
+                               if backlog else "there is no tile store to evict to")
         return foot
 
     def _check_memory(self, foot: fp.Footprint, resident: Container[TileIndex],
-                      resident_bytes: int, layers_after: int, new_layer: bool) -> None:
-        """Without a store nothing can be evicted: refuse what could grow the tiles past the
-        budget (priced as if every footprint tile were written: an upper bound)."""
+                      resident_bytes: int, layers_after: int, new_layer: bool,
+                      why: str) -> None:
+        """When nothing can be evicted (no store, or its writer saturated): refuse what could
+        grow the tiles past the budget (priced as if every footprint tile were written: an
+        upper bound)."""
         plane = self.tile_size * self.tile_size * 2
         i0, j0, i1, j1 = foot.tiles
         grow = 0
@@ -113,11 +121,11 @@ class Admission:
                     grow += layers_after * plane
                 elif new_layer:
                     grow += plane
-        if resident_bytes + grow > self._budget:
+        if grow and resident_bytes + grow > self._budget:  # existing tiles may still be written
             raise IsmRejectedError(
                 "memory_budget", f"the ISM may add {grow / 1e6:.1f} MB of tiles to "
                 f"{resident_bytes / 1e6:.1f} MB resident; the budget is "
-                f"{self._budget / 1e6:.1f} MB and there is no tile store to evict to",
+                f"{self._budget / 1e6:.1f} MB and {why}",
                 "storage.memory_budget_mb")
 
     # -- poses ----------------------------------------------------------------------------

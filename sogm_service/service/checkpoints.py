@@ -57,6 +57,7 @@ class Checkpointer:
         self.writer: TileWriter | None = None
         self._tiled: TiledMap | None = None
         self._budget = int(config.storage.memory_budget_mb * 1e6)
+        self._writer_bound = int(config.limits.max_writer_queue_mb * 1e6)
         self._warned_budget = False
         self._evicting = threading.Lock()
         self._stop = threading.Event()
@@ -164,6 +165,10 @@ class Checkpointer:
     def _failed(self, index: TileIndex, token: Any, exc: BaseException) -> None:
         self.stats.count("tile_write_errors")
 
+    def writer_full(self) -> bool:
+        """The store's writer holds ``max_writer_queue_mb`` of snapshots or more."""
+        return self.writer is not None and self.writer.pending_bytes() >= self._writer_bound
+
     def enforce_budget(self) -> None:
         """Evict least recently used tiles outside every ROI until the budget holds (one
         eviction pass at a time; a caller that finds one running leaves it the work)."""
@@ -188,7 +193,13 @@ class Checkpointer:
         for index in tiled.least_recently_used():
             if over <= 0:
                 break
-            if index in keep:
+            resident = tiled.tiles.get(index)
+            if index in keep or resident is None:
+                continue
+            if resident.dirty and self.writer_full():
+                # Its copy would only pile up behind the disk: leave it resident; admission
+                # refuses new tiles meanwhile (memory_budget), so memory stays bounded.
+                self.stats.count("evictions_deferred_writer_full")
                 continue
             tile = tiled.evict(index, before=self._submit_if_dirty)
             over -= tile.nbytes if tile is not None else 0
@@ -204,6 +215,8 @@ class Checkpointer:
             extra["dirty_tiles"] = sum(1 for t in self._tiled.resident() if t.dirty)
         if self.writer is not None:
             w = self.writer.stats
-            extra.update(writes_pending=self.writer.pending(), tiles_written_total=w.written,
+            extra.update(writes_pending=self.writer.pending(),
+                         writes_pending_mb=round(self.writer.pending_bytes() / 1e6, 3),
+                         tiles_written_total=w.written,
                          write_errors=w.errors, mb_written=round(w.bytes_written / 1e6, 3))
         return extra

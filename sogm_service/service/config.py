@@ -110,6 +110,7 @@ class LimitSettings(_Section):
     max_heavy_queries: Annotated[int, Field(gt=0)] = limits.MAX_HEAVY_QUERIES
     busy_retry_s: Annotated[float, Field(gt=0)] = limits.BUSY_RETRY_S
     log_text_chars: Annotated[int, Field(ge=16)] = limits.LOG_TEXT_CHARS
+    max_writer_queue_mb: Annotated[float, Field(gt=0)] = limits.MAX_WRITER_QUEUE_MB
 
 
 class Ros2Settings(_Section):

@@ -134,6 +134,7 @@ class IngestPipeline:
         self.fusers = fusers
         self.rejections = Rejections(stats, config.limits.log_text_chars)
         self.admission = Admission(config, stats)
+        self.admission.store_backlog = tiles.writer_full
         # What became of each ISM, for its publisher (service/acks.py); set by the server.
         self.outcomes: IsmOutcomes | None = None
 

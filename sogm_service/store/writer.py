@@ -86,6 +86,12 @@ class TileWriter:
         with self._cond:
             return len(self._pending) + (self._busy is not None)
 
+    def pending_bytes(self) -> int:
+        """Bytes of the snapshots queued or being written (what the queue holds in memory)."""
+        with self._cond:
+            held = sum(job.data.nbytes for job in self._pending.values())
+            return held + (self._busy.data.nbytes if self._busy is not None else 0)
+
     def is_pending(self, i: int, j: int) -> bool:
         with self._cond:
             return (i, j) in self._pending or (self._busy is not None

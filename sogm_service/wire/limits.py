@@ -100,3 +100,9 @@ ISM_ID_PATTERN: Final = r"^[A-Za-z0-9_.\-]{1,64}$"
 
 REJECTION_MESSAGE_CHARS: Final = 200
 """A rejection report's message is cut to this many characters."""
+
+MAX_WRITER_QUEUE_MB: Final = 256.0
+"""Tile snapshots waiting for the store's disk, at most (MB).  Beyond it dirty tiles are not
+evicted (their copies would pile up) and, while the resident tiles are over the memory budget,
+ISMs that could add tiles are refused with ``memory_budget``: memory stays within the budget
+plus this queue plus a fixed overhead whatever the disk's speed."""
