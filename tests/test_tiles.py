@@ -301,3 +301,30 @@ def test_window_geometry_is_centred_on_its_pose() -> None:
         centre = w.origin.transform_points(np.array([1.5, 1.0]))
         np.testing.assert_allclose(centre, [1.5, -2.0], atol=1e-12)
         assert w.origin.yaw == yaw
+
+
+def test_the_running_resident_byte_count_follows_every_change() -> None:
+    """Admission reads ``resident_bytes`` per ISM, so it is a running count: it must equal the
+    sum over the resident tiles after creating, growing, evicting, loading, replacing and
+    discarding tiles."""
+    stored: dict[tuple[int, int], tuple[list[str], np.ndarray, float]] = {}
+    m = new_map(loader=lambda i, j: stored.get((i, j)))
+
+    def truth() -> int:
+        return sum(t.nbytes for t in m.resident())
+
+    rng = np.random.default_rng(4)
+    inc = random_increments(rng, (20, 20))
+    m.fuse("a", inc, GridGeometry(RES, 20, 20, Pose2D(0.05, 0.05, 0.3)))
+    assert m.resident_bytes() == truth() > 0
+    m.fuse("b", inc, GridGeometry(RES, 20, 20, Pose2D(0.0, 0.0, 0.0)))  # every tile grows
+    assert m.resident_bytes() == truth()
+    index = next(iter(m.tiles))
+    m.evict(index, before=lambda s: stored.__setitem__(s.index, (s.layers, s.data, s.stamp)))
+    assert m.resident_bytes() == truth()
+    assert m.get_tile(index) is not None  # loaded back
+    assert m.resident_bytes() == truth()
+    m.insert_tile(index, ["a"], np.zeros((1, T, T), np.int16), 0.0, saved=True)
+    assert m.resident_bytes() == truth()
+    m.discard(index)
+    assert m.resident_bytes() == truth()

@@ -63,6 +63,26 @@ def scan_endpoints_world(ranges: npt.ArrayLike, angles: npt.ArrayLike, sensor_po
     return sensor_pose.transform_points(ends[hit])
 
 
+def check_cast(resolution: float, max_range: float, hit_width_cells: int) -> None:
+    """The arguments every laser ISM cast shares (sensor-aligned or on the map's lattice)."""
+    if not (resolution > 0 and math.isfinite(resolution)):
+        raise ValueError(f"resolution must be positive, got {resolution}")
+    if not (max_range > 0 and math.isfinite(max_range)):
+        raise ValueError(f"max_range must be positive and finite, got {max_range}")
+    if hit_width_cells < 1:
+        raise ValueError("hit_width_cells must be >= 1")
+
+
+def ism_probabilities(shape: tuple[int, int], free: npt.NDArray[np.bool_],
+                      occ: npt.NDArray[np.bool_], p_free: float,
+                      p_occ: float) -> FloatArray:
+    """Unknown (0.5) everywhere, ``p_free`` on free cells, ``p_occ`` on hits (occupied wins)."""
+    p = np.full(shape, UNKNOWN_P, dtype=np.float32)
+    p[free] = p_free
+    p[occ] = p_occ
+    return p
+
+
 def laser_ism(
     ranges: npt.ArrayLike,
     angles: npt.ArrayLike,
@@ -85,19 +105,12 @@ def laser_ism(
     Readings at or beyond ``device_max_range`` are the device's "no return" and are dropped
     (as gmapping does): glass and open doors would otherwise paint long free rays.
     """
-    if not (resolution > 0 and math.isfinite(resolution)):
-        raise ValueError(f"resolution must be positive, got {resolution}")
-    if not (max_range > 0 and math.isfinite(max_range)):
-        raise ValueError(f"max_range must be positive and finite, got {max_range}")
-    if hit_width_cells < 1:
-        raise ValueError("hit_width_cells must be >= 1")
+    check_cast(resolution, max_range, hit_width_cells)
     ends, valid, hit = scan_points(ranges, angles, max_range, min_range, device_max_range)
     geom, corner = _sensor_box(ends[valid], sensor_pose, resolution, hit_width_cells)
     free = _free_mask(ends[valid], hit[valid], corner, geom)
     occ = _hit_mask(ends[hit], corner, geom, hit_width_cells)
-    p = np.full(geom.shape, UNKNOWN_P, dtype=np.float32)
-    p[free] = p_free
-    p[occ] = p_occ
+    p = ism_probabilities(geom.shape, free, occ, p_free, p_occ)
     return geom, p
 
 

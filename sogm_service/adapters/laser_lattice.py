@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan
-from sogm_service.adapters.laser import UNKNOWN_P, scan_points
+from sogm_service.adapters.laser import check_cast, ism_probabilities, scan_points
 from sogm_service.core.geometry import GridGeometry, Pose2D
 
 FloatArray = npt.NDArray[np.float32]
@@ -59,12 +59,7 @@ def laser_ism_on_lattice(
     ``origin.y`` are whole multiples of ``resolution``), and the ISM covers the tightest box of
     map cells around the sensor and every beam end, padded by ``hit_width_cells``.
     """
-    if not (resolution > 0 and math.isfinite(resolution)):
-        raise ValueError(f"resolution must be positive, got {resolution}")
-    if not (max_range > 0 and math.isfinite(max_range)):
-        raise ValueError(f"max_range must be positive and finite, got {max_range}")
-    if hit_width_cells < 1:
-        raise ValueError("hit_width_cells must be >= 1")
+    check_cast(resolution, max_range, hit_width_cells)
     ends, valid, hit = scan_points(ranges, angles, max_range, min_range, device_max_range)
     world = sensor_pose.transform_points(ends[valid])
     hits = hit[valid]
@@ -78,9 +73,7 @@ def laser_ism_on_lattice(
                         Pose2D(float(lo[0]) * resolution, float(lo[1]) * resolution, 0.0))
     free = _free_cells(s_cell - lo, e_cell - lo, hits, geom.shape)
     occ = _hit_cells(e_cell[hits] - lo, geom.shape, hit_width_cells)
-    p = np.full(geom.shape, UNKNOWN_P, dtype=np.float32)
-    p[free] = p_free
-    p[occ] = p_occ
+    p = ism_probabilities(geom.shape, free, occ, p_free, p_occ)
     return geom, p
 
 

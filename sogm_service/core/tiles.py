@@ -119,6 +119,8 @@ class TiledMap:
         self.stored: set[TileIndex] = set()
         self.loader = loader
         self._struct = threading.RLock()
+        self._bytes_lock = threading.Lock()
+        self._resident_bytes = 0
         # Versions come from one map-wide clock, never per tile: a tile evicted and loaded
         # back must not reuse version numbers that an in-flight save may still confirm.
         self._clock = itertools.count(1)
@@ -165,7 +167,12 @@ class TiledMap:
             return list(self.tiles.values())
 
     def resident_bytes(self) -> int:
-        return sum(t.nbytes for t in self.resident())
+        """Bytes of the resident tiles' stacks: a running count (admission reads it per ISM)."""
+        return self._resident_bytes
+
+    def _account(self, delta: int) -> None:
+        with self._bytes_lock:
+            self._resident_bytes += delta
 
     def get_tile(self, index: TileIndex, create: bool = False) -> Tile | None:
         """The tile at ``index``, loading it back if it was evicted; ``create`` makes it."""
@@ -180,6 +187,7 @@ class TiledMap:
                     tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16),
                                 version=self.tick())
                     self.tiles[index] = tile
+                    self._account(tile.nbytes)
         if tile is not None:
             tile.last_used = time.monotonic()
         return tile
@@ -196,6 +204,7 @@ class TiledMap:
                     saved_version=version)
         self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)
         self.tiles[index] = tile
+        self._account(tile.nbytes)
         return tile
 
     def _stack_for(self, names: list[str], stack: npt.NDArray[np.int16]) -> npt.NDArray[np.int16]:
@@ -225,7 +234,9 @@ class TiledMap:
             if old is not None:
                 with old.lock:
                     old.evicted = True
+                    self._account(-old.nbytes)
             self.tiles[index] = tile
+            self._account(tile.nbytes)
         return tile
 
     def evict(self, index: TileIndex,
@@ -241,6 +252,7 @@ class TiledMap:
                     before(self._snapshot_locked(tile))
                 tile.evicted = True
                 del self.tiles[index]
+                self._account(-tile.nbytes)
             self.stored.add(index)
         return tile
 
@@ -284,6 +296,8 @@ class TiledMap:
             t = self.tile_size
             extra = np.zeros((len(self.layers) - have, t, t), dtype=np.int16)
             tile.data = np.concatenate([tile.data, extra], axis=0)
+            if self.tiles.get(tile.index) is tile:  # not a tile fetched or already gone
+                self._account(extra.nbytes)
 
     # -- writing --------------------------------------------------------------------------
     def fuse(self, layer: str, inc: npt.NDArray[np.int16], geometry: GridGeometry,
@@ -384,12 +398,14 @@ class TiledMap:
         """Forget a tile entirely (resident and stored): a cluster member that no longer
         owns it.  The caller removes its file from the store."""
         with self._struct:
-            tile = self.tiles.pop(index, None)
+            tile = self.tiles.get(index)
             known = tile is not None or index in self.stored
             self.stored.discard(index)
-        if tile is not None:
-            with tile.lock:
-                tile.evicted = True
+            if tile is not None:
+                with tile.lock:  # leaves the map and the count in one step
+                    del self.tiles[index]
+                    tile.evicted = True
+                    self._account(-tile.nbytes)
         return known
 
     def bounds(self, known: set[TileIndex] | None = None
