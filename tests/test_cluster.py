@@ -196,7 +196,8 @@ def _submap(endpoint: str, map_name: str = "default") -> np.ndarray:
 
 def _reference_map(ref: ServerProcess, n: int) -> np.ndarray:
     with MapClient.connect(ref.endpoint, map_name="ref", timeout=5.0) as c:
-        assert wait_until(lambda: c.stats().counters.get("isms_fused", 0) >= n, 30)
+        fused = wait_until(lambda: c.stats().counters.get("isms_fused", 0) >= n, 30)
+        assert fused, (n, c.stats().counters, c.stats().rejected)
     return _submap(ref.endpoint, "ref")
 
 
