@@ -44,7 +44,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -240,6 +242,16 @@ def init_pki(directory: Path | str, *, server_names: Sequence[str],
         _issue(pki, ca, n)
     write_configs(pki)
     return pki
+
+
+@contextmanager
+def bench_pki() -> Iterator[tuple[Path, Path]]:
+    """``sogm-service bench --secure``: a fresh dev PKI in a temporary directory (removed
+    afterwards): the configs of one robot, ``bench``, and of the server."""
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-pki-") as tmp:
+        pki = init_pki(tmp, server_names=["server"], robot_names=["bench"],
+                       endpoint="tls/127.0.0.1:7447")
+        yield pki.config("bench"), pki.config("server")
 
 
 def add_identity(directory: Path | str, name: str, role: str = "robot") -> Pki:

@@ -87,8 +87,9 @@ def _view(argv: list[str]) -> int:
 
 def _bench(argv: list[str]) -> int:
     from sogm_service import bench
+    from sogm_service.apps.certs import bench_pki
 
-    return bench.main(argv)
+    return bench.main(argv, dev_pki=bench_pki)
 
 
 _DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {

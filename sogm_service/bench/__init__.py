@@ -1,11 +1,13 @@
-"""``sogm-service bench [NAMES] [--quick] [--json FILE]``: the performance suite.
+"""``sogm-service bench [NAMES] [--quick] [--json FILE] [--zenoh-config FILE
+[--server-zenoh-config FILE] | --secure]``: the performance suite.
 
 Every figure is a ratio against a baseline measured in the same run (medians of repeated,
 interleaved runs), with the absolute numbers beside it; see ``docs/performance.md``.  This is a
 benchmark, never a test: ``tests/test_bench.py`` runs ``--quick`` only to keep it working.
 
 Modules: :mod:`.core` (rows, timing, report), :mod:`.compute` (the pure core: fusion, SEVDS,
-matching), :mod:`.zbench` (through Zenoh and processes), :mod:`.procs` (helper processes).
+matching), :mod:`.zbench` (through Zenoh and processes), :mod:`.procs` (helper processes),
+:mod:`.transport` (the Zenoh configs of the client and server sides).
 """
 
 from __future__ import annotations
@@ -14,8 +16,15 @@ import argparse
 import sys
 import time
 import traceback
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from pathlib import Path
 
+from sogm_service.bench import transport
 from sogm_service.bench.core import Benchmark, Row, notes, report, table, write_json
+
+DevPki = Callable[[], AbstractContextManager[tuple[Path, Path]]]
+"""Makes a fresh dev PKI for ``--secure``: (a robot's config, the server's config)."""
 
 
 def registry() -> list[Benchmark]:
@@ -72,6 +81,17 @@ def build_parser(names: list[str]) -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true",
                    help="few repeats, under a minute (CI smoke; numbers are rough)")
     p.add_argument("--json", metavar="FILE", default=None, help="write the results here")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="open the client side's sessions (queries, publishing robots) from this "
+                        "Zenoh config, honoured as is but for its endpoints (the bench's "
+                        "servers listen on ephemeral ports); e.g. a robot's from "
+                        "'sogm-service certs'")
+    p.add_argument("--server-zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="the same for the processes that stand in for the server (serve, the "
+                        "raw baselines); its listen endpoint's protocol (tls) is kept")
+    p.add_argument("--secure", action="store_true",
+                   help="run through a fresh dev PKI: mutual TLS and the access control of "
+                        "'sogm-service certs init' (a server and one robot)")
     return p
 
 
@@ -85,25 +105,51 @@ def run_one(bench: Benchmark, quick: bool) -> Row:
                    note=f"error: {type(exc).__name__}: {exc}"[:500])
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, dev_pki: DevPki | None = None) -> int:
+    """The suite; ``dev_pki`` serves ``--secure`` (the CLI passes the certs command's)."""
     benches = registry()
     by_name = {b.name: b for b in benches}
     args = build_parser(list(by_name)).parse_args(argv)
     unknown = [n for n in args.names if n not in by_name]
     if unknown:
-        print(f"sogm-service bench: unknown benchmark(s) {unknown}; "
-              f"choose from {list(by_name)}", file=sys.stderr)
-        return 2
+        return _usage(f"unknown benchmark(s) {unknown}; choose from {list(by_name)}")
+    if args.secure and (args.zenoh_config or args.server_zenoh_config):
+        return _usage("--secure makes its own configs: give it or --zenoh-config, not both")
+    if args.secure and dev_pki is None:
+        return _usage("--secure needs the certs command (run it as 'sogm-service bench')")
     chosen = [by_name[n] for n in args.names] if args.names else benches
+    pki = dev_pki() if args.secure and dev_pki else nullcontext(None)
+    with pki as made:
+        try:
+            how = transport.from_files(*made) if made else \
+                transport.from_files(args.zenoh_config, args.server_zenoh_config)
+        except ValueError as exc:
+            return _usage(str(exc))
+        with transport.using(how):
+            rows = _run_all(chosen, args.quick, how, args.json)
+    errors = [r for r in rows if r.note.startswith("error")]
+    return 1 if errors else 0
+
+
+def _usage(message: str) -> int:
+    print(f"sogm-service bench: {message}", file=sys.stderr)
+    return 2
+
+
+def _run_all(chosen: list[Benchmark], quick: bool, how: transport.Transport,
+             json_path: str | None) -> list[Row]:
     started = time.time()
     rows = []
     for bench in chosen:
         print(f"running {bench.name}: {bench.summary} ...", file=sys.stderr, flush=True)
-        rows.append(run_one(bench, args.quick))
+        rows.append(run_one(bench, quick))
     print(table(rows))
     print()
     print(notes(rows))
-    if args.json:
-        write_json(args.json, report(rows, args.quick, started))
-    errors = [r for r in rows if r.note.startswith("error")]
-    return 1 if errors else 0
+    print(f"\nZenoh rows through: {how.describe()}")
+    if json_path:
+        write_json(json_path, {**report(rows, quick, started), "transport": how.describe(),
+                               "transport_protocol": how.protocol,
+                               "zenoh_config": str(how.client_config or ""),
+                               "server_zenoh_config": str(how.server_config or "")})
+    return rows

@@ -13,26 +13,24 @@ from pathlib import Path
 
 import numpy as np
 
+from sogm_service.bench import transport
 from sogm_service.bench.core import Row, median
 from sogm_service.bench.zbench import PY, Proc
 from sogm_service.core.geometry import Pose2D
 from sogm_service.service.client import MapClient
-from sogm_service.service.session import (
-    free_tcp_endpoint,
-    loopback_settings,
-    open_session,
-    wait_listening,
-)
+from sogm_service.service.session import open_session, wait_listening
 
 RES = 0.05
 
 
 def _member(d: Path, name: str, peers: list[str], replicas: int) -> tuple[Proc, str]:
-    endpoint = free_tcp_endpoint()
+    how = transport.current()
+    endpoint = how.endpoint()
     cfg = d / f"{name}.toml"
     connect = ", ".join(f'"{p}"' for p in peers)
     cfg.write_text(f'[map]\nresolution = {RES}\n[cluster]\nenabled = true\nreplicas = {replicas}\n'
-                   f'[zenoh]\nlisten = ["{endpoint}"]\nconnect = [{connect}]\n',
+                   f'[zenoh]\nlisten = ["{endpoint}"]\nconnect = [{connect}]\n'
+                   + how.server_toml(),
                    encoding="utf-8")
     proc = Proc([PY, "-m", "sogm_service", "serve", "--config", str(cfg)], d / f"{name}.log")
     wait_listening(endpoint, 30.0, lambda: proc.popen.poll() is not None, proc.tail)
@@ -70,7 +68,7 @@ def _rate(members: int, count: int, rounds: int) -> list[float]:
                 proc, ep = _member(d, f"m{k}", list(endpoints), replicas=1)
                 procs.append(proc)
                 endpoints.append(ep)
-            pub = MapClient(open_session(loopback_settings(connect=endpoints[0])))
+            pub = MapClient(open_session(transport.current().client(endpoints[0])))
             try:
                 deadline = time.monotonic() + 60
                 while len(pub.servers(timeout=1.0)) < members and time.monotonic() < deadline:
@@ -82,7 +80,8 @@ def _rate(members: int, count: int, rounds: int) -> list[float]:
                     started = time.perf_counter()
                     for k in range(count):
                         ox, oy = (k * 7) % 16 * 12.8, (k * 3) % 16 * 12.8
-                        pub.publish_ism("ism/bench/obstacle", data, resolution=RES,
+                        pub.publish_ism(transport.current().ism_key("obstacle"), data,
+                                        resolution=RES,
                                         origin=Pose2D(ox, oy, 0.0), stamp=float(sent + k))
                     sent += count
                     _wait(pub, members, sent)

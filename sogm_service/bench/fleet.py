@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+from sogm_service.bench import transport
 from sogm_service.bench.core import Row, median, percentile
 from sogm_service.bench.zbench import (
     PY,
@@ -49,7 +50,7 @@ def _capacity(d: Path, served: Served, count: int) -> float:
     """ISMs/s the server fuses from a lossless burst (publisher as fast as it can)."""
     endpoint, client = served.endpoint, served.client
     before = client.stats().counters.get("isms_fused", 0)
-    pub = _publisher(d, endpoint, "ism/capacity/obstacle", count)
+    pub = _publisher(d, endpoint, transport.current().ism_key("capacity/obstacle"), count)
     try:
         pub.send("go")
         t_first = float(pub.expect("sent", 300.0)[0])
@@ -85,8 +86,10 @@ def mixed_fleet(quick: bool) -> Row:
         _fill_layers(client, 4)
         idle = _timed_queries(client, seconds)
         capacity = _capacity(d, served, 300 if quick else 1500)
+        how = transport.current()
+        owner = ["--owner", how.robot] if how.client_config else []
         pace = Proc([PY, "-m", "sogm_service.bench.procs", "paced", "--connect",
-                     served.endpoint], d / "paced.log", stdin=True)
+                     served.endpoint, *owner, *how.client_args()], d / "paced.log", stdin=True)
         results = {}
         try:
             pace.expect("ready", 60.0)

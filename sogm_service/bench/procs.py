@@ -22,12 +22,20 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from sogm_service.service.session import loopback_settings, open_session
+from sogm_service.bench.transport import Transport
+from sogm_service.service.session import open_session
 from sogm_service.wire import codec
+
+
+def _transport(args: argparse.Namespace) -> Transport:
+    """This role's side of the bench's transport: its ``--zenoh-config`` (or plain TCP)."""
+    config = args.zenoh_config
+    return Transport(client_config=config, server_config=config)
 
 
 def _stop_event() -> threading.Event:
@@ -43,7 +51,7 @@ def _say(text: str) -> None:
 
 def run_queryable(args: argparse.Namespace, stop: threading.Event) -> None:
     payload = bytes(args.size)
-    session = open_session(loopback_settings(listen=args.listen))
+    session = open_session(_transport(args).server(args.listen))
     try:
         q = session.declare_queryable(args.key, lambda query: query.reply(query.key_expr,
                                                                           payload))
@@ -66,7 +74,7 @@ def run_counter(args: argparse.Namespace, stop: threading.Event) -> None:
             _say(f"done {state['first']:.6f} {now:.6f}")
             state["n"] = 0
 
-    session = open_session(loopback_settings(listen=args.listen))
+    session = open_session(_transport(args).server(args.listen))
     try:
         sub = session.declare_subscriber(args.key, on_sample)
         _say("ready")
@@ -95,7 +103,7 @@ def ism_payloads(count: int, size: int, seed: int = 0) -> list[bytes]:
 
 def run_publisher(args: argparse.Namespace, stop: threading.Event) -> None:
     payloads = ism_payloads(args.count, args.size)
-    session = open_session(loopback_settings(connect=args.connect, mode="client"))
+    session = open_session(_transport(args).client(args.connect))
     try:
         pub = session.declare_publisher(args.key,
                                         congestion_control=zenoh.CongestionControl.BLOCK)
@@ -114,8 +122,10 @@ def run_publisher(args: argparse.Namespace, stop: threading.Event) -> None:
 
 def run_paced(args: argparse.Namespace, stop: threading.Event) -> None:
     payloads = ism_payloads(64, args.size)
-    keys = [f"ism/robot{r}/sensor/class{c}" for r in range(args.robots) for c in range(4)]
-    session = open_session(loopback_settings(connect=args.connect, mode="client"))
+    # Under access control one identity puts under its own name only: ism/<owner>/robot<r>/...
+    keys = [f"ism/{args.owner}/robot{r}/class{c}" if args.owner else
+            f"ism/robot{r}/sensor/class{c}" for r in range(args.robots) for c in range(4)]
+    session = open_session(_transport(args).client(args.connect))
     try:
         pubs = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
                 for k in keys]
@@ -158,6 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--connect", required=True)
     pc.add_argument("--robots", type=int, default=8)
     pc.add_argument("--size", type=int, default=256)
+    pc.add_argument("--owner", default=None, help="the robot identity every key is under")
+    for role in (q, c, pb, pc):
+        role.add_argument("--zenoh-config", type=Path, default=None,
+                          help="open the session from this Zenoh config (endpoints replaced)")
     return p
 
 

@@ -21,17 +21,13 @@ from typing import Any
 
 import zenoh
 
+from sogm_service.bench import transport
 from sogm_service.bench.compute import MAP_RES, synthetic_ism
 from sogm_service.bench.core import Row, interleaved, median, percentile
 from sogm_service.core.geometry import Pose2D
 from sogm_service.service import pipeline as ingest
 from sogm_service.service.client import MapClient
-from sogm_service.service.session import (
-    free_tcp_endpoint,
-    loopback_settings,
-    open_session,
-    wait_listening,
-)
+from sogm_service.service.session import open_session, wait_listening
 from sogm_service.wire.messages import StatsReply
 
 PY = sys.executable
@@ -95,7 +91,8 @@ class Proc:
 
 def _config(directory: Path, listen: str, queue_size: int = 64) -> Path:
     path = directory / "server.toml"
-    path.write_text(f'[map]\nresolution = {MAP_RES}\n\n[zenoh]\nlisten = ["{listen}"]\n\n'
+    path.write_text(f'[map]\nresolution = {MAP_RES}\n\n[zenoh]\nlisten = ["{listen}"]\n'
+                    f'{transport.current().server_toml()}\n'
                     f'[limits]\nqueue_size = {queue_size}\n'
                     + (f'fuse_workers = {os.environ["SOGM_BENCH_WORKERS"]}\n'
                        if os.environ.get("SOGM_BENCH_WORKERS") else ""),
@@ -113,12 +110,13 @@ class Served:
 @contextmanager
 def map_server(directory: Path) -> Iterator[Served]:
     """A ``sogm-service serve`` process and a client connected to it, once discoverable."""
-    endpoint = free_tcp_endpoint()
+    how = transport.current()
+    endpoint = how.endpoint()
     proc = Proc([PY, "-m", "sogm_service", "serve", "--config",
                  str(_config(directory, endpoint))], directory / "server.log")
     try:
         wait_listening(endpoint, 30.0, lambda: proc.popen.poll() is not None, proc.tail)
-        with MapClient.connect(endpoint, timeout=10.0) as client:
+        with MapClient.connect(timeout=10.0, zenoh_settings=how.client(endpoint)) as client:
             deadline = time.monotonic() + 30.0
             while not client.servers(timeout=1.0):
                 if time.monotonic() > deadline:
@@ -130,7 +128,9 @@ def map_server(directory: Path) -> Iterator[Served]:
 
 @contextmanager
 def helper(directory: Path, role: str, *args: str, stdin: bool = False) -> Iterator[Proc]:
-    proc = Proc([PY, "-m", "sogm_service.bench.procs", role, *args],
+    """A helper process standing in for a server (the raw baselines' queryable, counter)."""
+    proc = Proc([PY, "-m", "sogm_service.bench.procs", role, *args,
+                 *transport.current().server_args()],
                 directory / f"{role}.log", stdin=stdin)
     try:
         proc.expect("ready")
@@ -160,7 +160,8 @@ WINDOW: dict[str, Any] = dict(x=12.8, y=12.8, yaw=0.5, width=256 * MAP_RES, heig
 
 def _fill_layers(client: MapClient, layers: int) -> None:
     for k in range(layers):
-        client.publish_ism(f"ism/bench/layer{k}", synthetic_ism(512, k), resolution=MAP_RES,
+        client.publish_ism(transport.current().ism_key(f"layer{k}"), synthetic_ism(512, k),
+                           resolution=MAP_RES,
                            origin=Pose2D(0.0, 0.0, 0.0))
     wait_fused(client, layers)
 
@@ -172,12 +173,16 @@ def submap(quick: bool) -> Row:
         client = served.client
         _fill_layers(client, 4)
         size = len(client.get_raw(client.key("submap"), WINDOW))
-        raw_ep = free_tcp_endpoint()
-        with helper(Path(tmp), "queryable", "--listen", raw_ep, "--key", "bench/raw",
+        how = transport.current()
+        raw_ep = how.endpoint()
+        # The same key as the server's queryable (another process, its own network): the
+        # baseline goes through the same access control, if any.
+        with helper(Path(tmp), "queryable", "--listen", raw_ep, "--key", client.key("submap"),
                     "--size", str(size)), \
-                MapClient.connect(raw_ep, timeout=10.0) as raw:
+                MapClient.connect(timeout=10.0, zenoh_settings=how.client(raw_ep)) as raw:
             ours, base = interleaved(lambda: client.submap(**WINDOW),
-                                     lambda: raw.get_raw("bench/raw"), repeats, warmup=5)
+                                     lambda: raw.get_raw(raw.key("submap")), repeats,
+                                     warmup=5)
         handler = client.stats().latency_ms.get("submap", {}).get("p50", 0.0)
     server = {"server_handler_p50_ms": handler, **_breakdown_in_child(10 if quick else 50)}
     return _submap_row(ours, base, size, server)
@@ -304,16 +309,17 @@ def in_process_rate(count: int, repeats: int) -> float:
 
 def _publisher(d: Path, endpoint: str, key: str, count: int) -> Proc:
     pub = Proc([PY, "-m", "sogm_service.bench.procs", "publisher", "--connect", endpoint,
-                "--key", key, "--count", str(count)], d / "publisher.log", stdin=True)
+                "--key", key, "--count", str(count), *transport.current().client_args()],
+               d / "publisher.log", stdin=True)
     pub.expect("ready", 60.0)
     return pub
 
 
 def _raw_ingest(d: Path, count: int, rounds: int) -> list[float]:
-    endpoint = free_tcp_endpoint()
+    endpoint = transport.current().endpoint()
     with helper(d, "counter", "--listen", endpoint, "--key", "ism/**", "--count",
                 str(count)) as counter:
-        pub = _publisher(d, endpoint, "ism/bench/obstacle", count)
+        pub = _publisher(d, endpoint, transport.current().ism_key("obstacle"), count)
         try:
             return _rounds(pub, count, rounds,
                            lambda k: float(counter.expect("done", 300.0)[1]))
@@ -324,7 +330,7 @@ def _raw_ingest(d: Path, count: int, rounds: int) -> list[float]:
 def _server_ingest(d: Path, count: int, rounds: int) -> tuple[list[float], StatsReply]:
     with map_server(d) as served:
         client = served.client
-        pub = _publisher(d, served.endpoint, "ism/bench/obstacle", count)
+        pub = _publisher(d, served.endpoint, transport.current().ism_key("obstacle"), count)
         try:
             rates = _rounds(pub, count, rounds, lambda k: wait_fused(client, k * count)[0])
         finally:
@@ -345,7 +351,8 @@ def memory(quick: bool) -> Row:
             for i in range(0, side, piece):
                 for j in range(0, side, piece):
                     ism = synthetic_ism(piece, n)
-                    client.publish_ism(f"ism/bench/layer{k}", ism, resolution=MAP_RES,
+                    client.publish_ism(transport.current().ism_key(f"layer{k}"), ism,
+                                       resolution=MAP_RES,
                                        origin=Pose2D(i * MAP_RES, j * MAP_RES, 0.0))
                     n += 1
         _, counters = wait_fused(client, n)
@@ -401,16 +408,17 @@ def _import_time() -> float:
 def _serve_time(d: Path) -> float:
     """The client listens and the server connects to it, so the token's arrival is the moment
     the server became discoverable (no polling delay)."""
-    ours_ep = free_tcp_endpoint()
+    how = transport.current()
+    ours_ep = how.endpoint()
     seen = threading.Event()
-    session = open_session(loopback_settings(listen=ours_ep))
+    session = open_session(how.server(ours_ep))  # an observer with a server's identity
     try:
         sub = session.liveliness().declare_subscriber(
             "sogm/default/@server/*",
             lambda s: seen.set() if s.kind == zenoh.SampleKind.PUT else None)
         t0 = time.perf_counter()
-        proc = Proc([PY, "-m", "sogm_service", "serve", "--listen", free_tcp_endpoint(),
-                     "--connect", ours_ep], d / "startup.log")
+        proc = Proc([PY, "-m", "sogm_service", "serve", "--listen", how.endpoint(),
+                     "--connect", ours_ep, *how.server_args()], d / "startup.log")
         try:
             _wait_token(seen, proc)
             elapsed = time.perf_counter() - t0
