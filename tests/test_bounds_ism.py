@@ -103,6 +103,7 @@ def test_hostile_isms_are_refused_with_their_code_and_change_nothing(
         for code, _, _ in HOSTILE:
             expected[code] = expected.get(code, 0) + 1
         assert stats.rejected == expected, stats.rejected
+        assert stats.extra["reserved_mb"] == 0.0  # every admitted ISM's reservation released
         assert set(expected) <= set(ISM_CODES) | {"bad_layer"}
         assert snapshot(c) == before
         info = c.info()  # info, robots, stats all still answer

@@ -106,3 +106,22 @@ def test_a_saturated_writer_defers_eviction_and_refuses_new_tiles(stack: Any) ->
     keeper.enforce_budget()
     assert tiled.resident_bytes() <= config.storage.memory_budget_mb * 1e6
     admission.check_ism(_ism(100 * span), "obstacle", None, tiled)  # accepted again
+
+
+def test_admitted_isms_still_queued_reserve_their_tiles(tmp_path: Path) -> None:
+    """Without a store, each ISM admitted into new tiles reserves their bytes until it is
+    fused: a burst queued behind the fuse workers cannot pass the budget together although
+    each one alone would fit."""
+    config = ServiceConfig.model_validate({
+        "map": {"resolution": RES, "tile_size": T},
+        "storage": {"memory_budget_mb": 3 * T * T * 2 / 1e6}})  # room for three planes
+    admission = Admission(config, Stats())
+    tiled = TiledMap("m", "map", TileLattice(RES, T))
+    span = T * RES
+    held = [admission.check_ism(_ism(k * 10 * span), "obstacle", None, tiled) for k in range(3)]
+    assert held == [T * T * 2] * 3 and admission.reserved_bytes == 3 * T * T * 2
+    with pytest.raises(IsmRejectedError) as refused:  # a fourth new tile, nothing fused yet
+        admission.check_ism(_ism(40 * span), "obstacle", None, tiled)
+    assert refused.value.code == "memory_budget" and "reserved" in refused.value.message
+    admission.release(held[0])  # one is fused elsewhere (here: dropped): room again
+    assert admission.check_ism(_ism(40 * span), "obstacle", None, tiled) == T * T * 2

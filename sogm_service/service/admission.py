@@ -54,6 +54,10 @@ class Admission:
         # new tiles are priced as without a store).  Set by the pipeline.
         self.store_backlog: Callable[[], bool] | None = None
         self._heavy = threading.BoundedSemaphore(self.limits.max_heavy_queries)
+        # Bytes of tiles that admitted ISMs not yet fused may still create (the fuse workers'
+        # queues): priced like resident bytes, released when the ISM is fused or fails.
+        self._reserved = 0
+        self._reserved_lock = threading.Lock()
 
     # -- ISMs -----------------------------------------------------------------------------
     def check_names(self, layer: str | None, robot: str | None) -> None:
@@ -85,10 +89,11 @@ class Admission:
         return foot
 
     def check_ism(self, msg: IsmMessage, layer: str, robot: str | None, tiled: TiledMap,
-                  fleet: FleetTracker | None = None) -> fp.Footprint:
+                  fleet: FleetTracker | None = None) -> int:
         """Every check of an ISM before it is aligned or fused, from its header and the map's
-        counts (the ingestion worker runs them one ISM at a time; the fuse workers may still
-        be adding the few ISMs queued before, which the memory price does not see)."""
+        counts.  Returns the bytes of tiles reserved for it (see :meth:`release`): the ISMs
+        admitted before and still queued for the fuse workers are priced by their
+        reservations, so a burst cannot slip past the budget while they wait."""
         self.check_names(layer, robot)
         foot = self.footprint(msg)
         if robot and fleet is not None:
@@ -100,18 +105,29 @@ class Admission:
                                    f"the limit; refusing layer {layer[:64]!r}", "layer")
         backlog = self._has_store and self.store_backlog is not None and self.store_backlog()
         if not self._has_store or backlog:
-            self._check_memory(foot, tiled.tiles, tiled.resident_bytes(),
-                               n_layers + int(new_layer), new_layer,
-                               "the tile store's writer is saturated (max_writer_queue_mb)"
-                               if backlog else "there is no tile store to evict to")
-        return foot
+            return self._check_memory(foot, tiled.tiles, tiled.resident_bytes(),
+                                      n_layers + int(new_layer), new_layer,
+                                      "the tile store's writer is saturated "
+                                      "(max_writer_queue_mb)" if backlog
+                                      else "there is no tile store to evict to")
+        return 0
+
+    def release(self, reserved: int) -> None:
+        """An admitted ISM is fused (or failed): its reservation is now resident or void."""
+        if reserved:
+            with self._reserved_lock:
+                self._reserved -= reserved
+
+    @property
+    def reserved_bytes(self) -> int:
+        return self._reserved
 
     def _check_memory(self, foot: fp.Footprint, resident: Container[TileIndex],
                       resident_bytes: int, layers_after: int, new_layer: bool,
-                      why: str) -> None:
+                      why: str) -> int:
         """When nothing can be evicted (no store, or its writer saturated): refuse what could
         grow the tiles past the budget (priced as if every footprint tile were written: an
-        upper bound)."""
+        upper bound); otherwise reserve that growth until the ISM is fused."""
         plane = self.tile_size * self.tile_size * 2
         i0, j0, i1, j1 = foot.tiles
         grow = 0
@@ -121,12 +137,18 @@ class Admission:
                     grow += layers_after * plane
                 elif new_layer:
                     grow += plane
-        if grow and resident_bytes + grow > self._budget:  # existing tiles may still be written
-            raise IsmRejectedError(
-                "memory_budget", f"the ISM may add {grow / 1e6:.1f} MB of tiles to "
-                f"{resident_bytes / 1e6:.1f} MB resident; the budget is "
-                f"{self._budget / 1e6:.1f} MB and {why}",
-                "storage.memory_budget_mb")
+        if not grow:  # existing tiles may always be written
+            return 0
+        with self._reserved_lock:
+            held = resident_bytes + self._reserved
+            if held + grow > self._budget:
+                raise IsmRejectedError(
+                    "memory_budget", f"the ISM may add {grow / 1e6:.1f} MB of tiles to "
+                    f"{held / 1e6:.1f} MB resident or reserved by queued ISMs; the budget is "
+                    f"{self._budget / 1e6:.1f} MB and {why}",
+                    "storage.memory_budget_mb")
+            self._reserved += grow
+        return grow
 
     # -- poses ----------------------------------------------------------------------------
     def check_pose(self, robot: str, x: float, y: float) -> None:

@@ -145,13 +145,9 @@ class IngestPipeline:
         try:
             msg = self.decode(item)
             ism = self.prepare(item, msg)
-            self.admission.check_ism(msg, ism.layer, msg.robot, self.tiled, self.fleet)
-            ism = self.align(ism)
-            self.tiled.layer_id(ism.layer, create=True)  # layers in arrival order, any K
-            self.fusers.submit(FuseJob(
-                ism.layer, ism.increments, ism.geometry, self.config.ism[ism.source].interp,
-                ism.msg.stamp, done=partial(self._fused, ism, started, item=item),
-                **self.identity(item, ism.msg)))
+            reserved = self.admission.check_ism(msg, ism.layer, msg.robot, self.tiled,
+                                                self.fleet)
+            self._submit(item, ism, started, reserved)
         except SogmError as exc:
             self.rejections.reject(exc.code, f"{item.key}: {exc}")
             self.report(item, exc.code, str(exc))
@@ -159,6 +155,21 @@ class IngestPipeline:
             log.exception("internal error on ISM from %s", item.key[:200])
             self.rejections.reject("internal_error", f"{item.key}: {type(exc).__name__}: {exc}")
             self.report(item, "internal_error", f"{type(exc).__name__}: {exc}")
+
+    def _submit(self, item: IsmItem, ism: PreparedIsm, started: float, reserved: int) -> None:
+        """Align and hand to the fuse workers; the reservation goes with the job (released
+        when it is fused) or is released here when that fails."""
+        try:
+            ism = self.align(ism)
+            self.tiled.layer_id(ism.layer, create=True)  # layers in arrival order, any K
+            self.fusers.submit(FuseJob(
+                ism.layer, ism.increments, ism.geometry, self.config.ism[ism.source].interp,
+                ism.msg.stamp, done=partial(self._fused, ism, started, item=item,
+                                            reserved=reserved),
+                **self.identity(item, ism.msg)))
+        except BaseException:
+            self.admission.release(reserved)
+            raise
 
     def decode(self, item: IsmItem) -> IsmMessage:
         if item.msg is not None:  # decoded and validated by its adapter
@@ -189,8 +200,10 @@ class IngestPipeline:
         return replace(ism, increments=inc, geometry=geometry)
 
     def _fused(self, ism: PreparedIsm, started: float, touched: list[TileIndex],
-               error: BaseException | None, item: IsmItem | None = None) -> None:
+               error: BaseException | None, item: IsmItem | None = None,
+               reserved: int = 0) -> None:
         """The last fuse worker is done with ``ism``: count it and do the bookkeeping."""
+        self.admission.release(reserved)  # its tiles are resident now (or it failed)
         if error is not None:
             log.error("internal error fusing the ISM from %s: %r", ism.key, error)
             self.rejections.reject("internal_error",

@@ -296,6 +296,7 @@ class MapServer:
             "tiles_resident": len(self.map.tiles),
             "tiles_known": len(self.map.known_tiles()),
             "resident_mb": round(self.map.resident_bytes() / 1e6, 3),
+            "reserved_mb": round(self.pipeline.admission.reserved_bytes / 1e6, 3),
             "fuse_workers": self.fusers.workers,
             "kernels_ready": self.warmed_up.is_set(),
         }
