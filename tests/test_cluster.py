@@ -337,6 +337,7 @@ def test_no_live_owner_is_a_clear_error(tmp_path: Path, procs: list[ServerProces
                           and set(_copies(_held(observer)).values()) == {1}, 60)
         held = _held(observer)
         assert len(held) == 2 and all(held.values())
+        _each_tile_switch_is_announced_once(observer)
         b.proc.send_signal(signal.SIGSTOP)
         try:
             codes = []
@@ -357,3 +358,22 @@ def test_no_live_owner_is_a_clear_error(tmp_path: Path, procs: list[ServerProces
     finally:
         observer.close()
         fleet.close()
+
+
+def _each_tile_switch_is_announced_once(observer: MapClient) -> None:
+    """Both members track every robot, but only a tile's primary owner publishes its events:
+    six robots entering six tiles give six events, not twelve."""
+    heard: list[tuple[str, int, int]] = []
+    sub = observer.subscribe_tile_events(lambda e: heard.append((e.robot, e.i, e.j)))
+    try:
+        for k in range(6):
+            observer.publish_pose(f"e{k}", (k + 0.5) * TILE * RES, 0.5 * TILE * RES, stamp=1.0)
+
+        def counted(name: str) -> int:
+            return sum(s["counters"].get(name, 0) for s in _member_stats(observer).values())
+
+        assert wait_until(lambda: counted("tile_switches") >= 12 and len(heard) >= 6, 30)
+        assert wait_until(lambda: counted("tile_events_left_to_primary") == 6, 10)
+        assert sorted(heard) == [(f"e{k}", k, 0) for k in range(6)]
+    finally:
+        sub.undeclare()

@@ -212,6 +212,13 @@ class Cluster:
         view = self._view
         return view is not None and view.owns(self.me, index) and not self._pending(index)
 
+    def announces(self, index: TileIndex) -> bool:
+        """Whether this member publishes the tile events of ``index``: its primary owner
+        only, so a fleet hears each tile switch once however many members track the robots
+        (every member tracks them all).  Before the first view, every member does."""
+        view = self._view
+        return view is None or view.primary(index) in (None, self.me)
+
     def scope(self, job: FuseJob) -> frozenset[TileIndex]:
         """The tiles of ``job`` this member fuses now; pending ones keep the job in their
         journal (called by the fuse workers' ``submit``, in arrival order)."""

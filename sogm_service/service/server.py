@@ -223,6 +223,9 @@ class MapServer:
         self.fleet.submit_pose(robot, msg.x, msg.y, msg.stamp)
 
     def _publish_event(self, event: TileEvent) -> None:
+        if self.cluster is not None and not self.cluster.announces((event.i, event.j)):
+            self.stats.count("tile_events_left_to_primary")
+            return
         if self._events is not None:
             self._events.put(codec.encode(event))
 
