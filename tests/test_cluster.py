@@ -27,7 +27,8 @@ from sogm_service.service.handover import replay_plan
 from sogm_service.service.session import free_tcp_endpoint, loopback_settings, open_session
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError
-from sogm_service.wire.messages import ErrorReply
+from sogm_service.wire.keys import MapKeys
+from sogm_service.wire.messages import ErrorReply, InfoReply
 from tests.conftest import ServerProcess, start_server, wait_until
 
 RES = 0.1
@@ -338,6 +339,7 @@ def test_no_live_owner_is_a_clear_error(tmp_path: Path, procs: list[ServerProces
         held = _held(observer)
         assert len(held) == 2 and all(held.values())
         _each_tile_switch_is_announced_once(observer)
+        _each_member_answers_its_own_key(observer)
         b.proc.send_signal(signal.SIGSTOP)
         try:
             codes = []
@@ -377,3 +379,11 @@ def _each_tile_switch_is_announced_once(observer: MapClient) -> None:
         assert sorted(heard) == [(f"e{k}", k, 0) for k in range(6)]
     finally:
         sub.undeclare()
+
+
+def _each_member_answers_its_own_key(observer: MapClient) -> None:
+    """``member/<id>/<name>`` reaches the member named (a plain get reaches whichever members
+    Zenoh routes it to: in a peer mesh, all of them; see tests/test_router_integration.py)."""
+    for server_id in _member_stats(observer):
+        key = MapKeys(observer.prefix, observer.map_name).member(server_id, "info")
+        assert codec.decode(InfoReply, observer.get_raw(key)).server_id == server_id

@@ -49,6 +49,11 @@ def registry() -> list[Benchmark]:
 
         return cluster(quick)
 
+    def gathered(quick: bool) -> Row:
+        from sogm_service.bench.cluster import cluster_submap
+
+        return cluster_submap(quick)
+
     return [
         Benchmark("fuse_aligned", "aligned 1024x1024 prob_u8 ISM vs the streaming floor",
                   compute.fuse_aligned),
@@ -62,6 +67,8 @@ def registry() -> list[Benchmark]:
                   mixed),
         Benchmark("cluster", "ingestion with 2 cluster members vs 1 (replicas 1)",
                   clustered),
+        Benchmark("cluster_submap", "sub-map through a member owning none of its tiles vs "
+                  "through their owner", gathered),
         Benchmark("sevds", "SEVDS 256x256x3 vs OpenCV SEEDS", compute.sevds),
         Benchmark("memory", "100 m x 100 m at 5 cm, 8 layers: peak RSS vs raw bytes",
                   z("memory")),  # type: ignore[arg-type]

@@ -1,8 +1,12 @@
-"""The ``cluster`` row: ingestion with 2 members (replicas 1) against 1 member, same machine.
+"""The cluster rows, with 2 ``sogm-service serve`` members of one map on this machine.
 
-Each member is a ``sogm-service serve`` process with ``[cluster] enabled``; one publisher
-session sends ``count`` 256x256 aligned ISMs spread over a 16 x 16 tile area; the time runs
-until every member has handled all of them (each receives every ISM and fuses its tiles only).
+* ``cluster``: ingestion with 2 members (replicas 1) against 1 member.  Each member has
+  ``[cluster] enabled``; one publisher session sends ``count`` 256x256 aligned ISMs spread over
+  a 16 x 16 tile area; the time runs until every member has handled all of them (each receives
+  every ISM and fuses its tiles only).
+* ``cluster_submap``: the bench's 256x256x4 rotated biodds sub-map asked of the member that
+  owns none of the window's tiles (it gathers them from the other, ``fetch_cache_s = 0`` so
+  every query fetches) against the same query asked of their owner.
 """
 
 from __future__ import annotations
@@ -10,25 +14,31 @@ from __future__ import annotations
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from sogm_service.bench import transport
-from sogm_service.bench.core import Row, median
-from sogm_service.bench.zbench import PY, Proc
+from sogm_service.bench.compute import synthetic_ism
+from sogm_service.bench.core import Row, median, percentile
+from sogm_service.bench.zbench import PY, WINDOW, Proc
 from sogm_service.core.geometry import Pose2D
+from sogm_service.core.rendezvous import owners_of
 from sogm_service.service.client import MapClient
 from sogm_service.service.session import open_session, wait_listening
+from sogm_service.wire.keys import MapKeys
 
 RES = 0.05
 
 
-def _member(d: Path, name: str, peers: list[str], replicas: int) -> tuple[Proc, str]:
+def _member(d: Path, name: str, peers: list[str], replicas: int,
+            extra: str = "") -> tuple[Proc, str]:
     how = transport.current()
     endpoint = how.endpoint()
     cfg = d / f"{name}.toml"
     connect = ", ".join(f'"{p}"' for p in peers)
     cfg.write_text(f'[map]\nresolution = {RES}\n[cluster]\nenabled = true\nreplicas = {replicas}\n'
+                   f'{extra}'
                    f'[zenoh]\nlisten = ["{endpoint}"]\nconnect = [{connect}]\n'
                    + how.server_toml(),
                    encoding="utf-8")
@@ -105,3 +115,102 @@ def cluster(quick: bool) -> Row:
                f"2 members, replicas 1, each fusing its tiles of every ISM; median of {rounds} "
                f"bursts of {count} 256x256 ISMs; all processes share this machine's cores",
                {"count": float(count), "rounds": float(rounds)})
+
+
+# -- cluster_submap ---------------------------------------------------------------------------
+def _server_id(proc: Proc) -> str:
+    """From serve's start line: ``sogm-service: serving map 'm' as <id> on ...``."""
+    words = proc.expect("sogm-service:", 60.0)
+    return words[words.index("as") + 1]
+
+
+def _block_owned_by(owner: str, members: set[str]) -> tuple[int, int]:
+    """A 2 x 2 block of tiles (its lower-left index) whose only owner is ``owner``."""
+    for j in range(16):
+        for i in range(16):
+            block = [(i + di, j + dj) for di in (0, 1) for dj in (0, 1)]
+            if all(owners_of(members, t, 1) == (owner,) for t in block):
+                return i, j
+    raise RuntimeError("no 2x2 block of tiles owned by one member in 16 x 16 tiles")
+
+
+def _timed(client: MapClient, member: str, window: dict[str, Any], repeats: int
+           ) -> list[float]:
+    """Sub-map latencies (reply decoded) of one member, asked under its own key (which member
+    a plain get reaches is Zenoh's routing choice, not the endpoint's)."""
+    from sogm_service.wire import codec
+    from sogm_service.wire.messages import GridReply
+
+    key = MapKeys(client.prefix, client.map_name).member(member, "submap")
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        codec.decode(GridReply, client.get_raw(key, window))
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def cluster_submap(quick: bool) -> Row:
+    repeats = 20 if quick else 200
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-cluster-") as tmp:
+        d = Path(tmp)
+        extra = "fetch_cache_s = 0.0\n"
+        a, a_ep = _member(d, "m0", [], 1, extra)
+        procs = [a]
+        try:
+            b, b_ep = _member(d, "m1", [a_ep], 1, extra)
+            procs.append(b)
+            ids = {_server_id(a): a_ep, _server_id(b): b_ep}
+            asker, owner = list(ids)
+            i, j = _block_owned_by(owner, set(ids))
+            how = transport.current()
+            with MapClient.connect(timeout=10.0, zenoh_settings=how.client(ids[asker])) as far, \
+                    MapClient.connect(timeout=10.0, zenoh_settings=how.client(ids[owner])) as near:
+                deadline = time.monotonic() + 60
+                while len(near.servers(timeout=1.0)) < 2 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                time.sleep(1.0)  # the members' handovers settle
+                span = 256 * RES
+                for k in range(4):  # 4 layers over the block (and nowhere else)
+                    near.publish_ism(how.ism_key(f"layer{k}"), synthetic_ism(512, k),
+                                     resolution=RES, origin=Pose2D(i * span, j * span, 0.0),
+                                     stamp=float(k))
+                _wait(near, 2, 4)
+                window = {**WINDOW, "x": (i + 1) * span, "y": (j + 1) * span}
+                ours, base = [], []
+                served, served_owner = 0, 0  # tiles fetched for each member's queries
+                for _ in range(3):  # interleaved thirds: load changes hit both alike
+                    before = _served(near)
+                    base += _timed(near, owner, window, repeats // 3 + 1)
+                    middle = _served(near)
+                    ours += _timed(far, asker, window, repeats // 3 + 1)
+                    served_owner += middle - before
+                    served += _served(near) - middle
+        finally:
+            for proc in procs:
+                proc.stop()
+    m_o, m_b = median(ours) * 1e3, median(base) * 1e3
+    p_o, p_b = percentile(ours, 99) * 1e3, percentile(base, 99) * 1e3
+    return Row("cluster_submap_non_owner", m_o, m_b, "ms", m_o / m_b, "report", None,
+               "the same sub-map asked of the member that owns all its tiles",
+               f"2 members, replicas 1, no fetch cache: each query through the non-owner "
+               f"fetches the window's tiles from the owner ({served} tiles served for "
+               f"{len(ours)} queries, {served_owner} for the owner's); each member asked "
+               f"under its own key; prob_f32 reply decoded; p99 {p_o:.2f} vs {p_b:.2f} ms",
+               {"p99_ms": p_o, "baseline_p99_ms": p_b, "tiles_served": float(served),
+                "tiles_served_for_owner_queries": float(served_owner),
+                "queries": float(len(ours))})
+
+
+def _served(client: MapClient) -> int:
+    """Tiles the owner served to the other member (``cluster_tiles_served``), summed."""
+    import msgpack
+    import zenoh
+
+    total = 0
+    for reply in client.session.get(client.key("stats"), target=zenoh.QueryTarget.ALL,
+                                    consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0):
+        if reply.ok is not None:
+            got = msgpack.unpackb(reply.ok.payload.to_bytes())
+            total += int(got["counters"].get("cluster_tiles_served", 0))
+    return total

@@ -144,8 +144,16 @@ class MapServer:
         }
         assert set(handlers) == set(QUERYABLES)
         for name, handler in handlers.items():
+            # Complete: this server answers for the whole map (in a cluster it gathers what it
+            # does not own), so a client's get (BEST_MATCHING) reaches the nearest server
+            # only; an incomplete queryable is asked on every server and each one computes
+            # the reply.  ``stats`` is per server: a get reaches them all unless told.
             self._declared.append(s.declare_queryable(self.keys.key(name),
-                                                      self._guarded(name, handler)))
+                                                      self._guarded(name, handler),
+                                                      complete=name != "stats"))
+            if self.cluster is not None:  # and under this member's own key
+                self._declared.append(s.declare_queryable(
+                    self.keys.member(self.server_id, name), self._guarded(name, handler)))
         self._events = s.declare_publisher(self.keys.tile_events,
                                            congestion_control=zenoh.CongestionControl.BLOCK,
                                            reliability=zenoh.Reliability.RELIABLE)

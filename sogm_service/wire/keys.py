@@ -55,6 +55,12 @@ class MapKeys:
     def all_servers(self) -> str:
         return self.key("@server", "*")
 
+    def member(self, server_id: str, name: str) -> str:
+        """``<prefix>/<map>/member/<id>/<name>``: one cluster member's own queryable (an
+        operator or the bench asking that member; which member a plain get reaches is
+        Zenoh's routing choice)."""
+        return self.key("member", server_id, name)
+
     def matching(self, ism_key: str) -> str:
         return self.key("matching", ism_key)
 
