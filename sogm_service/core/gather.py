@@ -88,10 +88,9 @@ def combine(values: npt.NDArray[np.int16], t: Taps, interp: Interp) -> npt.NDArr
     if interp == "nearest":
         return np.ascontiguousarray(values[:, 0])
     assert t.fu is not None and t.fv is not None
-    if interp == "biodds":
-        g = values.astype(np.float64)
-    else:  # bilinear on probabilities; outside the box the warp reads P = 0.5 (log-odds 0)
-        g = logodds.sigmoid(values.astype(np.float64) / logodds.SCALE)
+    g: npt.NDArray[np.floating] = values.astype(np.float64)
+    if interp == "bilinear":  # on probabilities; outside the box the warp reads P = 0.5
+        g = logodds.sigmoid(g / logodds.SCALE)
     fu, fv = t.fu, t.fv
     top = g[:, 0] + fu * (g[:, 1] - g[:, 0])
     bottom = g[:, 2] + fu * (g[:, 3] - g[:, 2])
@@ -144,9 +143,9 @@ class Float32Mode:
 def _f32_positions(mode: Float32Mode | None, m: npt.NDArray[np.float64], width: int,
                    height: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     if mode is None:  # exact positions
-        xs = np.arange(width, dtype=np.float64)[None, :]
-        ys = np.arange(height, dtype=np.float64)[:, None]
-        return (m[0, 0] * xs + m[0, 1] * ys + m[0, 2], m[1, 0] * xs + m[1, 1] * ys + m[1, 2])
+        x64 = np.arange(width, dtype=np.float64)[None, :]
+        y64 = np.arange(height, dtype=np.float64)[:, None]
+        return (m[0, 0] * x64 + m[0, 1] * y64 + m[0, 2], m[1, 0] * x64 + m[1, 1] * y64 + m[1, 2])
     m32 = m.astype(np.float32)
     xs = np.arange(width, dtype=np.float32)
     ys = np.arange(height, dtype=np.float32)[:, None]
