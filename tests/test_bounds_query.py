@@ -58,8 +58,10 @@ def _code(client: MapClient, what: str, params: dict[str, object]) -> str:
     ({"width": "inf"}, "bad_parameter"),
     ({"x": "nan"}, "bad_parameter"),
     ({"yaw": "1e308"}, "ok"),  # a finite heading is a heading
-    # the 100x100 reply of a 400 m window at 4 m cells read 64 M map cells
-    ({"width": "400", "height": "400", "resolution": "4"}, "window_too_large"),
+    # the 100x100 reply of a 400 m window at 4 m cells read 64 M map cells; now it
+    # gathers 40 k (tests/test_coarse_sampling.py); 300 m at 0.1 m still reads 36 M
+    ({"width": "400", "height": "400", "resolution": "4"}, "ok"),
+    ({"width": "300", "height": "300", "resolution": "0.1"}, "window_too_large"),
     # 200 x 200 cells: 40 kB as prob_u8, 160 kB as prob_f32 (max_reply_bytes = 100 kB)
     ({"width": "10", "height": "10", "encoding": "prob_u8"}, "ok"),
     ({"width": "10", "height": "10", "encoding": "prob_f32"}, "reply_too_large"),
@@ -74,9 +76,9 @@ def test_absurd_numbers_get_their_code(srv: ServerProcess, what: str,
 
 def test_the_read_cells_are_named_in_the_refusal(srv: ServerProcess) -> None:
     with srv.client() as c, pytest.raises(ServiceError) as err:
-        c.submap(width=400, height=400, resolution=4)
+        c.submap(width=300, height=300, resolution=0.1)
     assert err.value.code == "window_too_large"
-    assert "reads 64" in err.value.message and "map cells" in err.value.message
+    assert "reads 36024004" in err.value.message and "map cells" in err.value.message
 
 
 def test_supercells_window_is_bounded(srv: ServerProcess) -> None:
@@ -109,10 +111,12 @@ def test_a_burst_of_large_windows_keeps_rss_and_the_map(srv: ServerProcess) -> N
         before_map = c.submap(width=10, height=10, encoding="logodds_i16").data.tobytes()
         before = baseline_rss_mb(c, srv.proc.pid)
         for k in range(30):
-            for params in ({"width": 400, "height": 400, "resolution": 4},
-                           {"width": 210, "height": 210, "resolution": 2 + k / 100},
+            for params in ({"width": 300, "height": 300, "resolution": 0.1},
+                           {"width": 210, "height": 210, "resolution": 0.1 + k / 1000},
                            {"width": "1e308"}):
                 assert _code(c, "submap", params) == "window_too_large"
+            # answered since it is gathered: 40 k map cells, not 64 M
+            assert _code(c, "submap", {"width": 400, "height": 400, "resolution": 4}) == "ok"
         assert rss_mb(srv.proc.pid) - before < RSS_BOUND_MB
         assert c.submap(width=10, height=10, encoding="logodds_i16").data.tobytes() \
             == before_map

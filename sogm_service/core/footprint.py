@@ -49,14 +49,28 @@ class WindowPrice:
     read_width: int
     read_height: int
     bounds: Bounds
+    taps: int = 4
+    """Map cells the gather path reads per output cell (:func:`gather_taps`)."""
 
     @property
     def cells(self) -> int:
         return self.width * self.height
 
     @property
-    def read_cells(self) -> int:
+    def mosaic_cells(self) -> int:
+        """Map cells of the box the full path builds (``read_width x read_height``)."""
         return self.read_width * self.read_height
+
+    @property
+    def gathered(self) -> bool:
+        """Whether ``sample`` gathers this window's cells instead of building its box."""
+        return prefer_gather(self.taps * self.cells, self.mosaic_cells)
+
+    @property
+    def read_cells(self) -> int:
+        """Map cells (per layer) sampling this window reads: the taps of every output cell
+        when it is gathered, else the whole box."""
+        return self.taps * self.cells if self.gathered else self.mosaic_cells
 
 
 def finite(*values: float) -> bool:
@@ -124,7 +138,8 @@ def window_cells(width_m: float, height_m: float, resolution: float) -> tuple[in
 
 
 def window_price(x: float, y: float, yaw: float, width_m: float, height_m: float,
-                 resolution: float, map_resolution: float) -> WindowPrice | None:
+                 resolution: float, map_resolution: float,
+                 interp: str = "biodds") -> WindowPrice | None:
     """The cells a window query returns and the map cells it reads (the box ``sample`` builds
     at map resolution, one cell of margin each side), or None when any number is not finite
     or absurd."""
@@ -146,7 +161,7 @@ def window_price(x: float, y: float, yaw: float, width_m: float, height_m: float
         return None
     read_w = (math.ceil(gx) + 1) - (math.floor(fx) - 1)
     read_h = (math.ceil(gy) + 1) - (math.floor(fy) - 1)
-    return WindowPrice(width, height, read_w, read_h, bounds)
+    return WindowPrice(width, height, read_w, read_h, bounds, gather_taps(interp))
 
 
 def tile_in_world(i: int, j: int, span: float, extent: float) -> bool:
@@ -154,3 +169,19 @@ def tile_in_world(i: int, j: int, span: float, extent: float) -> bool:
     report (an index beyond it could not even be encoded)."""
     lim = math.floor(extent / span) + 1
     return -lim - 1 <= i <= lim and -lim - 1 <= j <= lim
+
+
+# -- the gather path of coarse windows (:mod:`sogm_service.core.gather`) ---------------------
+GATHER_ADVANTAGE = 4
+"""``sample`` gathers a window's cells only when that reads at most 1/4 of its box."""
+
+
+def gather_taps(interp: str) -> int:
+    """Map cells one output cell reads: 1 for ``nearest``, the 2 x 2 neighbours otherwise."""
+    return 1 if interp == "nearest" else 4
+
+
+def prefer_gather(gathered_cells: int, mosaic_cells: int) -> bool:
+    """Whether gathering ``gathered_cells`` map cells beats building a box of
+    ``mosaic_cells`` (the one rule ``sample`` and the price both follow)."""
+    return gathered_cells * GATHER_ADVANTAGE <= mosaic_cells

@@ -36,10 +36,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.core import forget, logodds
+from sogm_service.core import forget, gather, logodds
+from sogm_service.core.footprint import gather_taps, prefer_gather
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, wrap_angle
 from sogm_service.core.resample import (
     Interp,
+    dst_to_src,
     informative,
     resample_stack,
     tile_patches,
@@ -387,6 +389,8 @@ class TiledMap:
         c0, r0 = math.floor(xmin / res) - 1, math.floor(ymin / res) - 1
         c1, r1 = math.ceil(xmax / res) + 1, math.ceil(ymax / res) + 1
         box = (c0, r0, c1 - c0, r1 - r0)
+        if prefer_gather(gather_taps(interp) * window.width * window.height, box[2] * box[3]):
+            return self.gather(window, ids, box, interp, now)  # coarse: read only the taps
         src = self.mosaic(box, ids, now)
         src_geom = GridGeometry(res, box[2], box[3], Pose2D(c0 * res, r0 * res, 0.0))
         if _is_aligned(src_geom, window):
@@ -478,6 +482,53 @@ class TiledMap:
         f = forget.decay_factor(now - tile.decay.get(lid, tile.stamp), h)
         if f != 1.0:
             block[...] = forget.decayed(block, f)
+
+    # -- the gather path of coarse windows (:mod:`sogm_service.core.gather`) ----------------
+    def gather(self, window: GridGeometry, layer_ids: list[int], box: tuple[int, int, int, int],
+               interp: Interp = "biodds", now: float | None = None) -> npt.NDArray[np.int16]:
+        """What :meth:`sample` returns for ``window`` (map-cell ``box`` its full path would
+        build), reading only the cells the warp would interpolate from (1 or 4 per output
+        cell) instead of the whole box."""
+        c0, r0, bw, bh = box
+        res = self.lattice.resolution
+        src_geom = GridGeometry(res, bw, bh, Pose2D(c0 * res, r0 * res, 0.0))
+        taps = gather.taps(dst_to_src(src_geom, window)[:2], bw, bh, window.width,
+                           window.height, interp)
+        values = np.zeros((len(layer_ids), *taps.u.shape), dtype=np.int16)
+        values[:, taps.inside] = self.read_cells(taps.u[taps.inside] + c0,
+                                                 taps.v[taps.inside] + r0, layer_ids, now)
+        return gather.combine(values, taps, interp)
+
+    def read_cells(self, u: npt.NDArray[np.int64], v: npt.NDArray[np.int64],
+                   layer_ids: list[int], now: float | None = None) -> npt.NDArray[np.int16]:
+        """``(len(layer_ids), n)`` log-odds of the map cells ``(u[k], v[k])`` (0 where there
+        is no tile), decaying layers as at ``now``: :meth:`mosaic` for scattered cells, tile
+        by tile under each tile's lock."""
+        now = self.now() if now is None else now
+        t = self.tile_size
+        out = np.zeros((len(layer_ids), u.size), dtype=np.int16)
+        if u.size == 0:
+            return out
+        ti, tj = u // t, v // t
+        order = np.lexsort((ti, tj))
+        ti_s, tj_s = ti[order], tj[order]
+        starts = np.flatnonzero(np.r_[True, (ti_s[1:] != ti_s[:-1]) | (tj_s[1:] != tj_s[:-1])])
+        ends = np.r_[starts[1:], order.size]
+        for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+            index = (int(ti_s[a]), int(tj_s[a]))
+            tile = self.get_tile(index)  # loads an evicted tile back; a read is a use
+            if tile is None:
+                continue
+            sel = order[a:b]
+            lu, lv = u[sel] - index[0] * t, v[sel] - index[1] * t
+            with tile.lock:  # as _copy_block: an evicted tile still holds its last state
+                data = tile.data
+                for k, lid in enumerate(layer_ids):
+                    if lid < data.shape[0]:
+                        cells = data[lid, lv, lu]  # a copy (fancy indexing)
+                        self._decay_for_read(tile, lid, cells, now)
+                        out[k, sel] = cells
+        return out
 
 
 def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:

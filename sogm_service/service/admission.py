@@ -10,7 +10,8 @@ nothing; the caller counts and logs it as every other refusal.  The arithmetic l
   (``memory_budget``).
 * Poses: name length and world extent (the robot count is the fleet tracker's).
 * Queries: every number finite and the centre in the world (``out_of_world``), the cells
-  returned and the map cells read at map resolution (``window_too_large``), the reply bytes
+  returned and the map cells read at map resolution (``window_too_large``; a coarse window
+  is priced at the cells its gather path reads, :mod:`sogm_service.core.gather`), the reply bytes
   (``reply_too_large``), and at most ``max_heavy_queries`` supercells at once (``busy``).
 """
 
@@ -170,7 +171,7 @@ class Admission:
             raise QueryError("out_of_world", f"the window centre ({req.x:.6g}, {req.y:.6g}) m "
                              f"is outside the world of +-{lim.world_extent_m:g} m", "x")
         price = fp.window_price(req.x, req.y, req.yaw, req.width, req.height, res,
-                                self.resolution)
+                                self.resolution, req.interp)
         if price is None:
             raise QueryError("window_too_large", f"a window of {req.width:.6g} x "
                              f"{req.height:.6g} m at {res:.6g} m cells has no finite cell "
@@ -185,8 +186,9 @@ class Admission:
             raise QueryError("window_too_large",
                              f"the window reads {price.read_cells} map cells (at "
                              f"{self.resolution:g} m) x {n_layers} layers, more than the limit "
-                             f"of {lim.max_query_read_cells}; ask for a smaller window (a "
-                             "coarser reply resolution does not read fewer map cells)",
+                             f"of {lim.max_query_read_cells}; ask for a smaller window or a "
+                             "much coarser resolution (a window at least 4 x 4 map cells per "
+                             "reply cell reads only the cells it interpolates)",
                              "width")
         if isinstance(req, SupercellRequest):
             if price.cells > lim.max_supercell_cells:

@@ -73,7 +73,7 @@ def window_of(req: WindowRequest, tiled: TiledMap, limit_cells: int,
                          f"{count} cells x {n_layers} layers exceed the limit of {limit_cells}"
                          " cells; ask for a smaller window or a coarser resolution", "width")
     price = window_price(req.x, req.y, req.yaw, req.width, req.height, res,
-                         tiled.lattice.resolution)
+                         tiled.lattice.resolution, req.interp)
     if price is None:
         raise QueryError("window_too_large", "the window's position or size is not finite at "
                          "map resolution", "x")
