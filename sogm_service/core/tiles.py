@@ -1,9 +1,12 @@
 """The tiled semantic map: a stack of log-odds layers kept in tiles of a fixed lattice.
 
-DESIGN.md section 3: tile ``(i, j)`` holds all layers as one ``(N, T, T)`` int16 array of
-fixed-point log-odds (:mod:`sogm_service.core.logodds`); a layer is added when its first ISM
-arrives; tiles are created on first write.  Writing an ISM resamples it straight into each tile
-it overlaps (no map-sized intermediate), so the cost is proportional to the ISM's footprint.
+DESIGN.md section 3: tile ``(i, j)`` holds its layers as ``(T, T)`` int16 planes of fixed-point
+log-odds (:mod:`sogm_service.core.logodds`), one per layer written into that tile, allocated on
+the layer's first write there (an absent plane is all unknown, 0): adding a layer costs one
+plane in the tiles it reaches, never a copy of other layers (issue 14).  A layer is added to the
+map when its first ISM arrives; tiles are created on first write.  Writing an ISM resamples it
+straight into each tile it overlaps (no map-sized intermediate), so the cost is proportional to
+the ISM's footprint.
 
 Concurrency: the map is shared by ingestion workers, queries and checkpoints without a
 map-wide lock, so a query never waits for an ISM to be fused.
@@ -55,14 +58,16 @@ Mark = tuple[float, int]
 
 @dataclass(eq=False)
 class Tile:
-    """One tile: its layers (``(n, T, T)`` int16, n <= the map's layer count) and bookkeeping.
+    """One tile: its planes (layer index -> ``(T, T)`` int16; a layer never written here has
+    none: all unknown) and bookkeeping.
 
-    ``lock`` guards ``data``, ``stamp`` and the versions; ``evicted`` is set (under it) when the
-    tile leaves the map, so a writer holding a stale reference fetches the tile again.
+    ``lock`` guards ``planes`` (the dict and the arrays), ``stamp`` and the versions;
+    ``evicted`` is set (under it) when the tile leaves the map, so a writer holding a stale
+    reference fetches the tile again.
     """
 
     index: TileIndex
-    data: npt.NDArray[np.int16]
+    planes: dict[int, npt.NDArray[np.int16]] = field(default_factory=dict)
     stamp: float = 0.0
     version: int = 0
     saved_version: int = -1
@@ -81,7 +86,17 @@ class Tile:
 
     @property
     def nbytes(self) -> int:
-        return int(self.data.nbytes)
+        """Bytes of the planes (the layers written into this tile)."""
+        return sum(int(p.nbytes) for p in list(self.planes.values()))
+
+    def stack(self, n: int, tile_size: int) -> npt.NDArray[np.int16]:
+        """A new ``(n, T, T)`` array of layers ``0..n-1``, zeros where a plane is absent (the
+        caller holds ``lock`` or has the tile to itself)."""
+        out = np.zeros((n, tile_size, tile_size), dtype=np.int16)
+        for lid, plane in self.planes.items():
+            if lid < n:
+                out[lid] = plane
+        return out
 
 
 @dataclass(frozen=True)
@@ -183,11 +198,8 @@ class TiledMap:
                 if tile is None and index in self.stored and self.loader is not None:
                     tile = self._load(index)
                 if tile is None and create:
-                    t = self.tile_size
-                    tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16),
-                                version=self.tick())
+                    tile = Tile(index, version=self.tick())  # no planes yet: 0 bytes
                     self.tiles[index] = tile
-                    self._account(tile.nbytes)
         if tile is not None:
             tile.last_used = time.monotonic()
         return tile
@@ -200,22 +212,19 @@ class TiledMap:
             return None
         names, stack, stamp = loaded[0], loaded[1], loaded[2]
         version = self.tick()
-        tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
+        tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
                     saved_version=version)
         self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)
         self.tiles[index] = tile
         self._account(tile.nbytes)
         return tile
 
-    def _stack_for(self, names: list[str], stack: npt.NDArray[np.int16]) -> npt.NDArray[np.int16]:
-        """A stored stack in this map's layer order.  Clamped: a tile stored under a wider
-        clamp (another eps0) or damaged would otherwise break the invariant Eq. 1's
-        add-then-clip relies on."""
-        ids = self.adopt_layers(names)
-        t = self.tile_size
-        data = np.zeros((len(self.layers), t, t), dtype=np.int16)
-        data[ids] = np.clip(stack, self.limits[0], self.limits[1])
-        return data
+    def _planes_for(self, names: list[str], stack: npt.NDArray[np.int16]
+                    ) -> dict[int, npt.NDArray[np.int16]]:
+        """A stored stack as planes in this map's layer indices (all-zero layers left out: they
+        cost nothing).  Clamped: a tile stored under a wider clamp (another eps0) or damaged
+        would otherwise break the invariant Eq. 1's add-then-clip relies on."""
+        return planes_of(self.adopt_layers(names), stack, self.limits)
 
     def insert_tile(self, index: TileIndex, names: list[str], stack: npt.NDArray[np.int16],
                     stamp: float, saved: bool,
@@ -227,7 +236,7 @@ class TiledMap:
             raise ValueError(f"tile stack shape {stack.shape} != {(len(names), t, t)}")
         with self._struct:
             version = self.tick()
-            tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
+            tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
                         saved_version=version if saved else -1, applied=dict(applied or {}))
             self._adopt_decay(tile, decay)
             old = self.tiles.get(index)
@@ -271,10 +280,11 @@ class TiledMap:
         return [t.index for t in sorted(tiles, key=lambda t: t.last_used)]
 
     def tile_layers(self, tile: Tile) -> tuple[list[str], npt.NDArray[np.int16]]:
-        """``(layer names, (n, T, T) stack)`` of a tile, its layers padded to the map's (the
-        caller holds the tile's lock, or has the map to itself)."""
-        self._grow(tile, len(self.layers) - 1)
-        return list(self.layers), tile.data
+        """``(layer names, (n, T, T) stack)`` of a tile in the map's layers, zeros where the
+        tile has no plane: a new array (the caller holds the tile's lock, or has the map to
+        itself)."""
+        names = list(self.layers)
+        return names, tile.stack(len(names), self.tile_size)
 
     def snapshot(self, index: TileIndex) -> TileSnapshot | None:
         """A consistent copy of a resident tile (None when it is not resident)."""
@@ -285,19 +295,27 @@ class TiledMap:
             return None if tile.evicted else self._snapshot_locked(tile)
 
     def _snapshot_locked(self, tile: Tile) -> TileSnapshot:
-        names, data = self.tile_layers(tile)
-        return TileSnapshot(tile.index, names, data.copy(), tile.stamp, tile.version,
+        names, data = self.tile_layers(tile)  # already a copy
+        return TileSnapshot(tile.index, names, data, tile.stamp, tile.version,
                             tile.dirty, {names[k]: t for k, t in sorted(tile.decay.items())},
                             dict(tile.applied))
 
-    def _grow(self, tile: Tile, layer: int) -> None:
-        have = tile.data.shape[0]
-        if layer >= have:
-            t = self.tile_size
-            extra = np.zeros((len(self.layers) - have, t, t), dtype=np.int16)
-            tile.data = np.concatenate([tile.data, extra], axis=0)
+    def _plane(self, tile: Tile, lid: int,
+               fresh: npt.NDArray[np.int16] | None = None) -> npt.NDArray[np.int16]:
+        """Tile ``tile``'s plane of layer ``lid``, added (``fresh``, or new zeros) when the
+        layer was never written there; counted if the tile is the map's (the caller holds
+        ``tile.lock``)."""
+        plane = tile.planes.get(lid)
+        if plane is None:
+            plane = fresh if fresh is not None else self._new_plane()
+            tile.planes[lid] = plane
             if self.tiles.get(tile.index) is tile:  # not a tile fetched or already gone
-                self._account(extra.nbytes)
+                self._account(plane.nbytes)
+        return plane
+
+    def _new_plane(self) -> npt.NDArray[np.int16]:
+        t = self.tile_size
+        return np.zeros((t, t), dtype=np.int16)
 
     # -- writing --------------------------------------------------------------------------
     def fuse(self, layer: str, inc: npt.NDArray[np.int16], geometry: GridGeometry,
@@ -328,10 +346,9 @@ class TiledMap:
                 with tile.lock:
                     if tile.evicted:
                         continue
-                    self._grow(tile, lid)
+                    plane = self._plane(tile, lid)
                     self._decay_for_write(tile, lid, stamp)
-                    logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch,
-                                         self.limits)
+                    logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], patch, self.limits)
                     tile.version = self.tick()
                     tile.stamp = max(tile.stamp, stamp)
                     if mark is not None:
@@ -365,11 +382,11 @@ class TiledMap:
         a0, a1 = max(c0, tc), min(c0 + w, tc + t)
         b0, b1 = max(r0, tr), min(r0 + h, tr + t)
         with tile.lock:  # an evicted tile still holds its last state: a consistent read
-            data = tile.data
             for k, lid in enumerate(layer_ids):
-                if lid < data.shape[0]:
+                plane = tile.planes.get(lid)
+                if plane is not None:  # else unknown: out is zeros already
                     out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = \
-                        data[lid, b0 - tr:b1 - tr, a0 - tc:a1 - tc]
+                        plane[b0 - tr:b1 - tr, a0 - tc:a1 - tc]
                     self._decay_for_read(tile, lid, out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0],
                                          now)
 
@@ -466,7 +483,9 @@ class TiledMap:
             return
         t_d = tile.decay.setdefault(lid, tile.stamp)
         if stamp - t_d >= forget.QUANTUM * h:
-            forget.decay_in_place(tile.data[lid], forget.decay_factor(stamp - t_d, h))
+            plane = tile.planes.get(lid)
+            if plane is not None:  # an absent plane is unknown: nothing to decay
+                forget.decay_in_place(plane, forget.decay_factor(stamp - t_d, h))
             tile.decay[lid] = stamp
 
     def _decay_for_read(self, tile: Tile, lid: int, block: npt.NDArray[np.int16],
@@ -478,6 +497,22 @@ class TiledMap:
         f = forget.decay_factor(now - tile.decay.get(lid, tile.stamp), h)
         if f != 1.0:
             block[...] = forget.decayed(block, f)
+
+
+def planes_of(ids: list[int], stack: npt.NDArray[np.int16],
+              limits: tuple[int, int] | None = None) -> dict[int, npt.NDArray[np.int16]]:
+    """``stack[k]`` as the plane of layer ``ids[k]`` (each its own array; clipped to
+    ``limits`` if given), all-zero layers left out (absent means unknown)."""
+    planes: dict[int, npt.NDArray[np.int16]] = {}
+    for k, lid in enumerate(ids):
+        plane = np.array(stack[k], dtype=np.int16) if limits is None \
+            else np.clip(stack[k], np.int16(limits[0]), np.int16(limits[1])).astype(np.int16,
+                                                                                 copy=False)
+        if plane.any():
+            planes[lid] = plane
+        else:
+            planes.pop(lid, None)  # a repeated name: the last one counts, as it did
+    return planes
 
 
 def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:
