@@ -61,7 +61,7 @@ def _filled_map() -> TiledMap:
 
 
 def _snapshot(tiled: TiledMap) -> dict[tuple[int, int], bytes]:
-    return {k: t.data.tobytes() for k, t in tiled.tiles.items()}
+    return {k: tiled.tile_layers(t)[1].tobytes() for k, t in tiled.tiles.items()}
 
 
 UNKNOWN_ISMS = {
