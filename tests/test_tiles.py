@@ -133,7 +133,8 @@ def test_rotated_ism_with_biodds_peaks_at_the_marked_cell() -> None:
     assert 0 < best[0] <= 4000
     peak = np.array([(best[1] + 0.5) * RES, (best[2] + 0.5) * RES])
     assert np.linalg.norm(peak - centre) <= RES * math.sqrt(0.5) + 1e-9
-    assert all(m.tile_layers(t)[1].min() >= 0 for t in m.tiles.values())  # unknown around stays unknown
+    # unknown around stays unknown
+    assert all(m.tile_layers(t)[1].min() >= 0 for t in m.tiles.values())
 
 
 def test_unknown_area_samples_as_zero() -> None:

@@ -43,6 +43,7 @@ from sogm_service.core import forget, logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, wrap_angle
 from sogm_service.core.resample import (
     Interp,
+    TilePatch,
     informative,
     resample_stack,
     tile_patches,
@@ -79,6 +80,9 @@ class Tile:
     decay: dict[int, float] = field(default_factory=dict)
     applied: dict[str, Mark] = field(default_factory=dict, repr=False)
     """The last ISM fused here per ISM key (a cluster's handover uses it; in memory only)."""
+    pins: int = 0
+    """Fuses that hold this tile between their two phases (:meth:`TiledMap.fuse`); a pinned
+    tile is not evicted.  Guarded by ``lock``."""
 
     @property
     def dirty(self) -> bool:
@@ -251,12 +255,15 @@ class TiledMap:
     def evict(self, index: TileIndex,
               before: Callable[[TileSnapshot], None] | None = None) -> Tile | None:
         """Drop a resident tile from memory.  ``before`` gets its last snapshot first, taken
-        with the tile locked (so no write can slip in between; the caller stores it)."""
+        with the tile locked (so no write can slip in between; the caller stores it).  None:
+        not resident, or pinned by a fuse in progress (it stays)."""
         with self._struct:
             tile = self.tiles.get(index)
             if tile is None:
                 return None
             with tile.lock:
+                if tile.pins:  # a fuse between its phases (see fuse): stays, for now
+                    return None
                 if before is not None:
                     before(self._snapshot_locked(tile))
                 tile.evicted = True
@@ -330,32 +337,28 @@ class TiledMap:
         written as the last ISM of that key applied to it.  Returns the tiles written.  Only
         the add holds a lock (the tile's); the ISM's alignment and inverse transform are
         worked out once (:func:`sogm_service.core.resample.tile_patches`).
+
+        Transactional: phase 1 computes every tile's patch, gets or creates (or loads back)
+        every tile written, pins them (:meth:`evict` leaves a pinned tile resident) and
+        allocates the planes this layer lacks there; phase 2 adds the patches, each under its
+        tile's lock.  If phase 1 fails (a patch, the loader, an allocation: ``MemoryError``)
+        no tile has changed: the tiles it created or loaded back leave the map again and the
+        exception propagates; the layer and the map's clock are not even touched.  Phase 2
+        allocates nothing but a decaying layer's temporaries (one ``(T, T)`` float64 array
+        twice), and fetches a tile again only if :meth:`insert_tile` or :meth:`discard`
+        replaced or removed it meanwhile (a cluster's handover).
         """
-        lid = self.layer_id(layer, create=True)
-        self.advance_clock(stamp)
-        touched = []
-        for part in tile_patches(inc, geometry, self.lattice, interp, owned):
-            index, (u0, v0, w, h), patch = part.index, part.block, part.patch
-            while True:  # until the tile we lock is the map's (not evicted meanwhile)
-                tile = self.get_tile(index)
-                if tile is None:
-                    if not informative(patch):
-                        break  # an ISM of pure unknown creates no tile
-                    tile = self.get_tile(index, create=True)
-                    assert tile is not None
-                with tile.lock:
-                    if tile.evicted:
-                        continue
-                    plane = self._plane(tile, lid)
-                    self._decay_for_write(tile, lid, stamp)
-                    logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], patch, self.limits)
-                    tile.version = self.tick()
-                    tile.stamp = max(tile.stamp, stamp)
-                    if mark is not None:
-                        tile.applied[mark[0]] = mark[1]
-                touched.append(index)
-                break
-        return touched
+        # Phase 1: every patch (warped ones into this thread's scratch), then every tile.
+        parts = list(tile_patches(inc, geometry, self.lattice, interp, owned,
+                                  buffers=_scratch.reset().take))
+        targets = self._acquire(parts, self._layer_index.get(layer))
+        try:  # phase 2: nothing here can fail (see the docstring)
+            lid = self.layer_id(layer, create=True)
+            self.advance_clock(stamp)
+            added = (self._add(target, lid, stamp, mark) for target in targets)
+            return [index for index in added if index is not None]
+        finally:
+            self._unpin(targets)
 
     # -- reading --------------------------------------------------------------------------
     def mosaic(self, box: tuple[int, int, int, int], layer_ids: list[int],
@@ -497,6 +500,148 @@ class TiledMap:
         f = forget.decay_factor(now - tile.decay.get(lid, tile.stamp), h)
         if f != 1.0:
             block[...] = forget.decayed(block, f)
+
+
+    # -- the two phases of a fuse (fuse's docstring) ---------------------------------------
+    def _acquire(self, parts: list[TilePatch], known: int | None) -> list[_Target]:
+        """Phase 1 after the patches: every tile to write, pinned, with a fresh plane when it
+        lacks layer ``known`` (None: a new layer).  On failure: rolled back, re-raised."""
+        targets: list[_Target] = []
+        try:
+            for part in parts:
+                self._target(part, known, targets)
+        except BaseException:
+            self._roll_back(targets)
+            raise
+        return targets
+
+    def _target(self, part: TilePatch, known: int | None, targets: list[_Target]) -> None:
+        index = part.index
+        while True:
+            tile, how = self.tiles.get(index), "resident"
+            if tile is None:
+                useful = informative(part.patch)
+                with self._struct:
+                    tile = self.tiles.get(index)
+                    if tile is None and index in self.stored and self.loader is not None:
+                        tile, how = self._load(index), "loaded"
+                    if tile is None:
+                        if not useful:
+                            return  # an ISM of pure unknown creates no tile
+                        tile, how = Tile(index, version=self.tick()), "created"
+                        self.tiles[index] = tile
+            with tile.lock:
+                if tile.evicted:
+                    continue  # evicted since we found it: fetch it again
+                tile.pins += 1
+                target = _Target(part, tile, how, tile.version)
+                lacks = known is None or known not in tile.planes
+            targets.append(target)  # pinned: a failure from here on is rolled back
+            tile.last_used = time.monotonic()
+            if lacks:
+                target.fresh = self._new_plane()
+            return
+
+    def _roll_back(self, targets: list[_Target]) -> None:
+        """Phase 1 failed: unpin; the tiles it created or loaded leave the map again unless
+        something else has used them for a write since."""
+        with self._struct:
+            for target in reversed(targets):
+                tile = target.tile
+                with tile.lock:
+                    tile.pins -= 1
+                    target.pinned = False
+                    if target.how == "resident" or tile.pins or tile.evicted \
+                            or tile.version != target.version \
+                            or self.tiles.get(tile.index) is not tile:
+                        continue
+                    tile.evicted = True
+                    del self.tiles[tile.index]
+                    self._account(-tile.nbytes)
+                    if target.how == "loaded":
+                        self.stored.add(tile.index)  # as it was: stored, not resident
+
+    def _add(self, target: _Target, lid: int, stamp: float,
+             mark: tuple[str, Mark] | None) -> TileIndex | None:
+        """Phase 2 for one tile: Eq. 1 under its lock, then unpinned."""
+        index, (u0, v0, w, h), patch = target.part.index, target.part.block, target.part.patch
+        tile: Tile | None = target.tile
+        while tile is not None:
+            with tile.lock:
+                if target.pinned and tile is target.tile:
+                    tile.pins -= 1
+                    target.pinned = False
+                if not tile.evicted:
+                    plane = self._plane(tile, lid, target.fresh)
+                    target.fresh = None
+                    self._decay_for_write(tile, lid, stamp)
+                    logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], patch, self.limits)
+                    tile.version = self.tick()
+                    tile.stamp = max(tile.stamp, stamp)
+                    if mark is not None:
+                        tile.applied[mark[0]] = mark[1]
+                    return index
+            # Replaced (insert_tile) or removed (discard) since phase 1: the map's tile now.
+            tile = self.get_tile(index)
+            if tile is None and informative(patch):
+                tile = self.get_tile(index, create=True)
+        return None
+
+    def _unpin(self, targets: list[_Target]) -> None:
+        """Pins phase 2 did not release (it raised): released."""
+        for target in targets:
+            if target.pinned:
+                with target.tile.lock:
+                    target.tile.pins -= 1
+                    target.pinned = False
+
+
+@dataclass(eq=False, slots=True)
+class _Target:
+    """One tile a fuse writes: its patch, the tile (pinned), how phase 1 got it, its version
+    then, and the plane to add if the tile lacked the layer."""
+
+    part: TilePatch
+    tile: Tile
+    how: str  # "resident", "loaded" or "created"
+    version: int
+    fresh: npt.NDArray[np.int16] | None = None
+    pinned: bool = True
+
+
+_SCRATCH_MAX = 64 * 256 * 256 * 4
+"""Bytes of warped patches a thread keeps between ISMs, at most (64 float32 tiles of 256)."""
+
+
+class _Scratch(threading.local):
+    """Per thread: the memory of one ISM's warped patches (fuse's phase 1 keeps them all until
+    phase 2 has added them), kept for the next ISM: fresh arrays of this size are mmapped and
+    page-faulted by glibc on every call, which costs as much as the warp.  It grows to the
+    largest footprint seen, up to :data:`_SCRATCH_MAX`; patches beyond are fresh arrays."""
+
+    def __init__(self) -> None:
+        self.buf: npt.NDArray[np.uint8] = np.empty(0, np.uint8)
+        self.used = 0
+
+    def reset(self) -> _Scratch:
+        self.used = 0
+        return self
+
+    def take(self, h: int, w: int, dtype: np.dtype) -> npt.NDArray:
+        dtype = np.dtype(dtype)
+        n = h * w * dtype.itemsize
+        start = -(-self.used // 64) * 64
+        if start + n > self.buf.size:
+            if start + n > _SCRATCH_MAX:
+                return np.empty((h, w), dtype)
+            # A bigger buffer from 0; the patches already taken keep the old one alive.
+            self.buf = np.empty(min(_SCRATCH_MAX, max(2 * self.buf.size, 4 * n)), np.uint8)
+            start = 0
+        self.used = start + n
+        return self.buf[start:start + n].view(dtype).reshape(h, w)
+
+
+_scratch = _Scratch()
 
 
 def planes_of(ids: list[int], stack: npt.NDArray[np.int16],
