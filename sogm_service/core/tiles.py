@@ -21,6 +21,10 @@ map-wide lock, so a query never waits for an ISM to be fused.
   is awaited by a writer, so it cannot deadlock with them.
 * Writers to one tile are serialised by its lock; callers that need a tile's ISMs applied in
   arrival order (the service's fuse workers own disjoint tiles) keep that order themselves.
+* A fuse is transactional, in two phases (:meth:`TiledMap.fuse`): first every patch is
+  computed and every tile got, created or loaded back and *pinned* (a pinned tile is not
+  evicted), then the patches are added, each under its tile's lock only.  A failure in the
+  first phase changes no tile: the tiles it created or loaded leave the map again.
 
 This module is pure (no I/O): persistence and the memory budget are the caller's business
 through two hooks, ``loader`` (bring back a tile that is not resident) and the LRU order of
