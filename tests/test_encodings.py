@@ -61,7 +61,7 @@ def _filled_map() -> TiledMap:
 
 
 def _snapshot(tiled: TiledMap) -> dict[tuple[int, int], bytes]:
-    return {k: t.data.tobytes() for k, t in tiled.tiles.items()}
+    return {k: tiled.tile_layers(t)[1].tobytes() for k, t in tiled.tiles.items()}
 
 
 UNKNOWN_ISMS = {
@@ -99,7 +99,7 @@ def test_prob_u8_128_as_unknown_drives_the_map_to_the_clamp() -> None:
     inc = logodds.increments(np.full((8, 8), 128, np.uint8), "prob_u8")
     for _ in range(10_000):
         tiled.fuse("a", inc, geom, "biodds")
-    assert (tiled.tiles[(0, 0)].data[0, :8, :8] == HI).all()
+    assert (tiled.tiles[(0, 0)].planes[0][:8, :8] == HI).all()
 
 
 def _ism_payload(data: np.ndarray, encoding: str, res: float = 0.05) -> bytes:

@@ -35,9 +35,10 @@ def cell_value(m: TiledMap, layer: str, col: int, row: int) -> int:
     """A map cell (global cell index) read straight from its tile; 0 if there is no tile."""
     tile = m.tiles.get((col // T, row // T))
     lid = m.layers.index(layer)
-    if tile is None or lid >= tile.data.shape[0]:
+    plane = None if tile is None else tile.planes.get(lid)
+    if plane is None:
         return 0
-    return int(tile.data[lid, row % T, col % T])
+    return int(plane[row % T, col % T])
 
 
 def test_aligned_ism_samples_back_as_its_clamped_increments() -> None:
@@ -75,8 +76,9 @@ def test_ism_across_tile_boundaries_lands_in_every_tile() -> None:
             assert cell_value(m, "obstacle", c0 + u, r0 + v) == np.clip(inc[v, u], lo, hi)
     # nothing outside the ISM was written
     for tile in m.tiles.values():
-        assert np.count_nonzero(tile.data) <= np.count_nonzero(inc)
-    assert sum(np.count_nonzero(t.data) for t in m.tiles.values()) == np.count_nonzero(inc)
+        assert np.count_nonzero(m.tile_layers(tile)[1]) <= np.count_nonzero(inc)
+    assert sum(np.count_nonzero(m.tile_layers(t)[1]) for t in m.tiles.values()) \
+        == np.count_nonzero(inc)
     # a window across all the tiles reads it back, with unknown around it
     window = GridGeometry(RES, 25, 23, Pose2D((c0 - 2) * RES, (r0 - 2) * RES, 0.0))
     got = m.sample(window, ["obstacle"])[0]
@@ -131,7 +133,8 @@ def test_rotated_ism_with_biodds_peaks_at_the_marked_cell() -> None:
     assert 0 < best[0] <= 4000
     peak = np.array([(best[1] + 0.5) * RES, (best[2] + 0.5) * RES])
     assert np.linalg.norm(peak - centre) <= RES * math.sqrt(0.5) + 1e-9
-    assert all(t.data.min() >= 0 for t in m.tiles.values())  # unknown around stays unknown
+    # unknown around stays unknown
+    assert all(m.tile_layers(t)[1].min() >= 0 for t in m.tiles.values())
 
 
 def test_unknown_area_samples_as_zero() -> None:
@@ -157,7 +160,8 @@ def test_layers_are_created_on_their_first_ism() -> None:
     m.fuse("table", np.full((3, 3), 600, np.int16), geom)
     m.fuse("floor", np.full((3, 3), -100, np.int16), geom)
     assert m.layers == ["floor", "table"]
-    assert m.tiles[(0, 0)].data.shape == (2, T, T)
+    assert sorted(m.tiles[(0, 0)].planes) == [0, 1]  # one (T, T) plane per layer written
+    assert m.tile_layers(m.tiles[(0, 0)])[1].shape == (2, T, T)
     got = m.sample(geom, ["table", "floor"])
     assert (got[0] == 600).all() and (got[1] == -900).all()
 
@@ -187,8 +191,9 @@ def test_clamp_holds_after_repeated_fusion(eps0: float) -> None:
         m.fuse("a", inc, geom)
         m.fuse("a", inc, GridGeometry(RES, 12, 12, Pose2D(0.2, 0.1, 0.0)))  # aligned path
         for tile in m.tiles.values():
-            assert tile.data.min() >= lo and tile.data.max() <= hi
-    assert max(int(t.data.max()) for t in m.tiles.values()) == hi
+            stack = m.tile_layers(tile)[1]
+            assert stack.min() >= lo and stack.max() <= hi
+    assert max(int(m.tile_layers(t)[1].max()) for t in m.tiles.values()) == hi
 
 
 def test_tiles_loaded_back_are_clamped_to_this_map() -> None:
@@ -202,7 +207,8 @@ def test_tiles_loaded_back_are_clamped_to_this_map() -> None:
     lo, hi = m.limits
     tile = m.get_tile((0, 0))
     assert tile is not None
-    assert tile.data.min() >= lo and tile.data.max() <= hi
+    stack = m.tile_layers(tile)[1]
+    assert stack.min() >= lo and stack.max() <= hi
     m.fuse("a", np.full((1, 3), logodds.MAX_STATE, np.int16), GridGeometry(RES, 3, 1))
     np.testing.assert_array_equal(m.sample(GridGeometry(RES, 3, 1), ["a"])[0, 0], [hi, hi, hi])
 

@@ -145,6 +145,10 @@ class TilePatch:
     patch: npt.NDArray
 
 
+Buffers = Callable[[int, int, np.dtype], npt.NDArray]
+"""Memory for one warped block: ``(h, w, dtype) -> (h, w)`` array (:func:`tile_patches`)."""
+
+
 def lattice_offset(src: GridGeometry, resolution: float) -> tuple[int, int] | None:
     """Map cell ``(column, row)`` of ``src``'s cell (0, 0) when ``src`` sits on the lattice's
     cells (same resolution and heading, origin on a cell corner), else None."""
@@ -178,13 +182,16 @@ def tile_block(corners: npt.NDArray[np.float64], index: tuple[int, int],
 
 def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: TileLattice,
                  interp: Interp = "biodds",
-                 owned: Callable[[tuple[int, int]], bool] | None = None) -> Iterator[TilePatch]:
+                 owned: Callable[[tuple[int, int]], bool] | None = None,
+                 buffers: Buffers | None = None) -> Iterator[TilePatch]:
     """Every tile's share of the increments ``inc`` (given in ``geometry``), raster order;
     with ``owned``, only the tiles it accepts (a fuse worker's share of the lattice).
 
     Aligned ISMs are sliced (views, no copy); others are warped block by block, the ISM's
     inverse transform computed once, into one scratch buffer: a warped patch is valid only
-    until the next one is produced (consume it at once, as :meth:`TiledMap.fuse` does).
+    until the next one is produced (consume it at once) -- unless ``buffers`` gives each
+    block's memory (``(h, w, dtype) -> array``), as :meth:`TiledMap.fuse` does to keep every
+    patch of an ISM until it has added them all.
     """
     if interp not in INTERPOLATIONS:
         raise ValueError(f"unknown interpolation {interp!r}; use one of {INTERPOLATIONS}")
@@ -203,7 +210,7 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
     src = inc.astype(np.float32) if interp == "biodds" else inc
     # One tile-sized buffer for every block: fresh arrays of this size are mmapped and
     # page-faulted on every call by glibc, which costs as much as the warp itself.
-    scratch = np.empty((t, t), dtype=src.dtype)
+    scratch = np.empty((t, t), dtype=src.dtype) if buffers is None else None
     for index in lattice.tiles_overlapping(geometry):
         if owned is not None and not owned(index):
             continue
@@ -217,8 +224,12 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
             yield TilePatch(index, block, resample_logodds(inc, geometry, sub, interp))
             continue
         c2w = np.array([[res, 0.0, x0 + 0.5 * res], [0.0, res, y0 + 0.5 * res], [0, 0, 1.0]])
-        yield TilePatch(index, block,
-                        _warp_block(src, to_src @ c2w, scratch[:h, :w], interp))
+        if buffers is not None:
+            out = buffers(h, w, src.dtype)
+        else:
+            assert scratch is not None
+            out = scratch[:h, :w]
+        yield TilePatch(index, block, _warp_block(src, to_src @ c2w, out, interp))
 
 
 def _aligned_patches(inc: npt.NDArray[np.int16], offset: tuple[int, int],

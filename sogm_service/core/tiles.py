@@ -1,9 +1,12 @@
 """The tiled semantic map: a stack of log-odds layers kept in tiles of a fixed lattice.
 
-DESIGN.md section 3: tile ``(i, j)`` holds all layers as one ``(N, T, T)`` int16 array of
-fixed-point log-odds (:mod:`sogm_service.core.logodds`); a layer is added when its first ISM
-arrives; tiles are created on first write.  Writing an ISM resamples it straight into each tile
-it overlaps (no map-sized intermediate), so the cost is proportional to the ISM's footprint.
+DESIGN.md section 3: tile ``(i, j)`` holds its layers as ``(T, T)`` int16 planes of fixed-point
+log-odds (:mod:`sogm_service.core.logodds`), one per layer written into that tile, allocated on
+the layer's first write there (an absent plane is all unknown, 0): adding a layer costs one
+plane in the tiles it reaches, never a copy of other layers (issue 14).  A layer is added to the
+map when its first ISM arrives; tiles are created on first write.  Writing an ISM resamples it
+straight into each tile it overlaps (no map-sized intermediate), so the cost is proportional to
+the ISM's footprint.
 
 Concurrency: the map is shared by ingestion workers, queries and checkpoints without a
 map-wide lock, so a query never waits for an ISM to be fused.
@@ -18,6 +21,10 @@ map-wide lock, so a query never waits for an ISM to be fused.
   is awaited by a writer, so it cannot deadlock with them.
 * Writers to one tile are serialised by its lock; callers that need a tile's ISMs applied in
   arrival order (the service's fuse workers own disjoint tiles) keep that order themselves.
+* A fuse is transactional, in two phases (:meth:`TiledMap.fuse`): first every patch is
+  computed and every tile got, created or loaded back and *pinned* (a pinned tile is not
+  evicted), then the patches are added, each under its tile's lock only.  A failure in the
+  first phase changes no tile: the tiles it created or loaded leave the map again.
 
 This module is pure (no I/O): persistence and the memory budget are the caller's business
 through two hooks, ``loader`` (bring back a tile that is not resident) and the LRU order of
@@ -41,6 +48,7 @@ from sogm_service.core.footprint import gather_taps, prefer_gather
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, wrap_angle
 from sogm_service.core.resample import (
     Interp,
+    TilePatch,
     dst_to_src,
     informative,
     resample_stack,
@@ -57,14 +65,16 @@ Mark = tuple[float, int]
 
 @dataclass(eq=False)
 class Tile:
-    """One tile: its layers (``(n, T, T)`` int16, n <= the map's layer count) and bookkeeping.
+    """One tile: its planes (layer index -> ``(T, T)`` int16; a layer never written here has
+    none: all unknown) and bookkeeping.
 
-    ``lock`` guards ``data``, ``stamp`` and the versions; ``evicted`` is set (under it) when the
-    tile leaves the map, so a writer holding a stale reference fetches the tile again.
+    ``lock`` guards ``planes`` (the dict and the arrays), ``stamp`` and the versions;
+    ``evicted`` is set (under it) when the tile leaves the map, so a writer holding a stale
+    reference fetches the tile again.
     """
 
     index: TileIndex
-    data: npt.NDArray[np.int16]
+    planes: dict[int, npt.NDArray[np.int16]] = field(default_factory=dict)
     stamp: float = 0.0
     version: int = 0
     saved_version: int = -1
@@ -76,6 +86,9 @@ class Tile:
     decay: dict[int, float] = field(default_factory=dict)
     applied: dict[str, Mark] = field(default_factory=dict, repr=False)
     """The last ISM fused here per ISM key (a cluster's handover uses it; in memory only)."""
+    pins: int = 0
+    """Fuses that hold this tile between their two phases (:meth:`TiledMap.fuse`); a pinned
+    tile is not evicted.  Guarded by ``lock``."""
 
     @property
     def dirty(self) -> bool:
@@ -83,7 +96,17 @@ class Tile:
 
     @property
     def nbytes(self) -> int:
-        return int(self.data.nbytes)
+        """Bytes of the planes (the layers written into this tile)."""
+        return sum(int(p.nbytes) for p in list(self.planes.values()))
+
+    def stack(self, n: int, tile_size: int) -> npt.NDArray[np.int16]:
+        """A new ``(n, T, T)`` array of layers ``0..n-1``, zeros where a plane is absent (the
+        caller holds ``lock`` or has the tile to itself)."""
+        out = np.zeros((n, tile_size, tile_size), dtype=np.int16)
+        for lid, plane in self.planes.items():
+            if lid < n:
+                out[lid] = plane
+        return out
 
 
 @dataclass(frozen=True)
@@ -185,11 +208,8 @@ class TiledMap:
                 if tile is None and index in self.stored and self.loader is not None:
                     tile = self._load(index)
                 if tile is None and create:
-                    t = self.tile_size
-                    tile = Tile(index, np.zeros((len(self.layers), t, t), dtype=np.int16),
-                                version=self.tick())
+                    tile = Tile(index, version=self.tick())  # no planes yet: 0 bytes
                     self.tiles[index] = tile
-                    self._account(tile.nbytes)
         if tile is not None:
             tile.last_used = time.monotonic()
         return tile
@@ -202,22 +222,19 @@ class TiledMap:
             return None
         names, stack, stamp = loaded[0], loaded[1], loaded[2]
         version = self.tick()
-        tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
+        tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
                     saved_version=version)
         self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)
         self.tiles[index] = tile
         self._account(tile.nbytes)
         return tile
 
-    def _stack_for(self, names: list[str], stack: npt.NDArray[np.int16]) -> npt.NDArray[np.int16]:
-        """A stored stack in this map's layer order.  Clamped: a tile stored under a wider
-        clamp (another eps0) or damaged would otherwise break the invariant Eq. 1's
-        add-then-clip relies on."""
-        ids = self.adopt_layers(names)
-        t = self.tile_size
-        data = np.zeros((len(self.layers), t, t), dtype=np.int16)
-        data[ids] = np.clip(stack, self.limits[0], self.limits[1])
-        return data
+    def _planes_for(self, names: list[str], stack: npt.NDArray[np.int16]
+                    ) -> dict[int, npt.NDArray[np.int16]]:
+        """A stored stack as planes in this map's layer indices (all-zero layers left out: they
+        cost nothing).  Clamped: a tile stored under a wider clamp (another eps0) or damaged
+        would otherwise break the invariant Eq. 1's add-then-clip relies on."""
+        return planes_of(self.adopt_layers(names), stack, self.limits)
 
     def insert_tile(self, index: TileIndex, names: list[str], stack: npt.NDArray[np.int16],
                     stamp: float, saved: bool,
@@ -229,7 +246,7 @@ class TiledMap:
             raise ValueError(f"tile stack shape {stack.shape} != {(len(names), t, t)}")
         with self._struct:
             version = self.tick()
-            tile = Tile(index, self._stack_for(names, stack), stamp=stamp, version=version,
+            tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
                         saved_version=version if saved else -1, applied=dict(applied or {}))
             self._adopt_decay(tile, decay)
             old = self.tiles.get(index)
@@ -244,12 +261,15 @@ class TiledMap:
     def evict(self, index: TileIndex,
               before: Callable[[TileSnapshot], None] | None = None) -> Tile | None:
         """Drop a resident tile from memory.  ``before`` gets its last snapshot first, taken
-        with the tile locked (so no write can slip in between; the caller stores it)."""
+        with the tile locked (so no write can slip in between; the caller stores it).  None:
+        not resident, or pinned by a fuse in progress (it stays)."""
         with self._struct:
             tile = self.tiles.get(index)
             if tile is None:
                 return None
             with tile.lock:
+                if tile.pins:  # a fuse between its phases (see fuse): stays, for now
+                    return None
                 if before is not None:
                     before(self._snapshot_locked(tile))
                 tile.evicted = True
@@ -273,10 +293,11 @@ class TiledMap:
         return [t.index for t in sorted(tiles, key=lambda t: t.last_used)]
 
     def tile_layers(self, tile: Tile) -> tuple[list[str], npt.NDArray[np.int16]]:
-        """``(layer names, (n, T, T) stack)`` of a tile, its layers padded to the map's (the
-        caller holds the tile's lock, or has the map to itself)."""
-        self._grow(tile, len(self.layers) - 1)
-        return list(self.layers), tile.data
+        """``(layer names, (n, T, T) stack)`` of a tile in the map's layers, zeros where the
+        tile has no plane: a new array (the caller holds the tile's lock, or has the map to
+        itself)."""
+        names = list(self.layers)
+        return names, tile.stack(len(names), self.tile_size)
 
     def snapshot(self, index: TileIndex) -> TileSnapshot | None:
         """A consistent copy of a resident tile (None when it is not resident)."""
@@ -287,19 +308,27 @@ class TiledMap:
             return None if tile.evicted else self._snapshot_locked(tile)
 
     def _snapshot_locked(self, tile: Tile) -> TileSnapshot:
-        names, data = self.tile_layers(tile)
-        return TileSnapshot(tile.index, names, data.copy(), tile.stamp, tile.version,
+        names, data = self.tile_layers(tile)  # already a copy
+        return TileSnapshot(tile.index, names, data, tile.stamp, tile.version,
                             tile.dirty, {names[k]: t for k, t in sorted(tile.decay.items())},
                             dict(tile.applied))
 
-    def _grow(self, tile: Tile, layer: int) -> None:
-        have = tile.data.shape[0]
-        if layer >= have:
-            t = self.tile_size
-            extra = np.zeros((len(self.layers) - have, t, t), dtype=np.int16)
-            tile.data = np.concatenate([tile.data, extra], axis=0)
+    def _plane(self, tile: Tile, lid: int,
+               fresh: npt.NDArray[np.int16] | None = None) -> npt.NDArray[np.int16]:
+        """Tile ``tile``'s plane of layer ``lid``, added (``fresh``, or new zeros) when the
+        layer was never written there; counted if the tile is the map's (the caller holds
+        ``tile.lock``)."""
+        plane = tile.planes.get(lid)
+        if plane is None:
+            plane = fresh if fresh is not None else self._new_plane()
+            tile.planes[lid] = plane
             if self.tiles.get(tile.index) is tile:  # not a tile fetched or already gone
-                self._account(extra.nbytes)
+                self._account(plane.nbytes)
+        return plane
+
+    def _new_plane(self) -> npt.NDArray[np.int16]:
+        t = self.tile_size
+        return np.zeros((t, t), dtype=np.int16)
 
     # -- writing --------------------------------------------------------------------------
     def fuse(self, layer: str, inc: npt.NDArray[np.int16], geometry: GridGeometry,
@@ -314,33 +343,28 @@ class TiledMap:
         written as the last ISM of that key applied to it.  Returns the tiles written.  Only
         the add holds a lock (the tile's); the ISM's alignment and inverse transform are
         worked out once (:func:`sogm_service.core.resample.tile_patches`).
+
+        Transactional: phase 1 computes every tile's patch, gets or creates (or loads back)
+        every tile written, pins them (:meth:`evict` leaves a pinned tile resident) and
+        allocates the planes this layer lacks there; phase 2 adds the patches, each under its
+        tile's lock.  If phase 1 fails (a patch, the loader, an allocation: ``MemoryError``)
+        no tile has changed: the tiles it created or loaded back leave the map again and the
+        exception propagates; the layer and the map's clock are not even touched.  Phase 2
+        allocates nothing but a decaying layer's temporaries (one ``(T, T)`` float64 array
+        twice), and fetches a tile again only if :meth:`insert_tile` or :meth:`discard`
+        replaced or removed it meanwhile (a cluster's handover).
         """
-        lid = self.layer_id(layer, create=True)
-        self.advance_clock(stamp)
-        touched = []
-        for part in tile_patches(inc, geometry, self.lattice, interp, owned):
-            index, (u0, v0, w, h), patch = part.index, part.block, part.patch
-            while True:  # until the tile we lock is the map's (not evicted meanwhile)
-                tile = self.get_tile(index)
-                if tile is None:
-                    if not informative(patch):
-                        break  # an ISM of pure unknown creates no tile
-                    tile = self.get_tile(index, create=True)
-                    assert tile is not None
-                with tile.lock:
-                    if tile.evicted:
-                        continue
-                    self._grow(tile, lid)
-                    self._decay_for_write(tile, lid, stamp)
-                    logodds.bayes_update(tile.data[lid, v0:v0 + h, u0:u0 + w], patch,
-                                         self.limits)
-                    tile.version = self.tick()
-                    tile.stamp = max(tile.stamp, stamp)
-                    if mark is not None:
-                        tile.applied[mark[0]] = mark[1]
-                touched.append(index)
-                break
-        return touched
+        # Phase 1: every patch (warped ones into this thread's scratch), then every tile.
+        parts = list(tile_patches(inc, geometry, self.lattice, interp, owned,
+                                  buffers=_scratch.reset().take))
+        targets = self._acquire(parts, self._layer_index.get(layer))
+        try:  # phase 2: nothing here can fail (see the docstring)
+            lid = self.layer_id(layer, create=True)
+            self.advance_clock(stamp)
+            added = (self._add(target, lid, stamp, mark) for target in targets)
+            return [index for index in added if index is not None]
+        finally:
+            self._unpin(targets)
 
     # -- reading --------------------------------------------------------------------------
     def mosaic(self, box: tuple[int, int, int, int], layer_ids: list[int],
@@ -367,11 +391,11 @@ class TiledMap:
         a0, a1 = max(c0, tc), min(c0 + w, tc + t)
         b0, b1 = max(r0, tr), min(r0 + h, tr + t)
         with tile.lock:  # an evicted tile still holds its last state: a consistent read
-            data = tile.data
             for k, lid in enumerate(layer_ids):
-                if lid < data.shape[0]:
+                plane = tile.planes.get(lid)
+                if plane is not None:  # else unknown: out is zeros already
                     out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = \
-                        data[lid, b0 - tr:b1 - tr, a0 - tc:a1 - tc]
+                        plane[b0 - tr:b1 - tr, a0 - tc:a1 - tc]
                     self._decay_for_read(tile, lid, out[k, b0 - r0:b1 - r0, a0 - c0:a1 - c0],
                                          now)
 
@@ -470,7 +494,9 @@ class TiledMap:
             return
         t_d = tile.decay.setdefault(lid, tile.stamp)
         if stamp - t_d >= forget.QUANTUM * h:
-            forget.decay_in_place(tile.data[lid], forget.decay_factor(stamp - t_d, h))
+            plane = tile.planes.get(lid)
+            if plane is not None:  # an absent plane is unknown: nothing to decay
+                forget.decay_in_place(plane, forget.decay_factor(stamp - t_d, h))
             tile.decay[lid] = stamp
 
     def _decay_for_read(self, tile: Tile, lid: int, block: npt.NDArray[np.int16],
@@ -522,13 +548,170 @@ class TiledMap:
             sel = order[a:b]
             lu, lv = u[sel] - index[0] * t, v[sel] - index[1] * t
             with tile.lock:  # as _copy_block: an evicted tile still holds its last state
-                data = tile.data
                 for k, lid in enumerate(layer_ids):
-                    if lid < data.shape[0]:
-                        cells = data[lid, lv, lu]  # a copy (fancy indexing)
+                    plane = tile.planes.get(lid)
+                    if plane is not None:  # else unknown: out is zeros already
+                        cells = plane[lv, lu]  # a copy (fancy indexing)
                         self._decay_for_read(tile, lid, cells, now)
                         out[k, sel] = cells
         return out
+
+    # -- the two phases of a fuse (fuse's docstring) ---------------------------------------
+    def _acquire(self, parts: list[TilePatch], known: int | None) -> list[_Target]:
+        """Phase 1 after the patches: every tile to write, pinned, with a fresh plane when it
+        lacks layer ``known`` (None: a new layer).  On failure: rolled back, re-raised."""
+        targets: list[_Target] = []
+        try:
+            for part in parts:
+                self._target(part, known, targets)
+        except BaseException:
+            self._roll_back(targets)
+            raise
+        return targets
+
+    def _target(self, part: TilePatch, known: int | None, targets: list[_Target]) -> None:
+        index = part.index
+        while True:
+            tile, how = self.tiles.get(index), "resident"
+            if tile is None:
+                useful = informative(part.patch)
+                with self._struct:
+                    tile = self.tiles.get(index)
+                    if tile is None and index in self.stored and self.loader is not None:
+                        tile, how = self._load(index), "loaded"
+                    if tile is None:
+                        if not useful:
+                            return  # an ISM of pure unknown creates no tile
+                        tile, how = Tile(index, version=self.tick()), "created"
+                        self.tiles[index] = tile
+            with tile.lock:
+                if tile.evicted:
+                    continue  # evicted since we found it: fetch it again
+                tile.pins += 1
+                target = _Target(part, tile, how, tile.version)
+                lacks = known is None or known not in tile.planes
+            targets.append(target)  # pinned: a failure from here on is rolled back
+            tile.last_used = time.monotonic()
+            if lacks:
+                target.fresh = self._new_plane()
+            return
+
+    def _roll_back(self, targets: list[_Target]) -> None:
+        """Phase 1 failed: unpin; the tiles it created or loaded leave the map again unless
+        something else has used them for a write since."""
+        with self._struct:
+            for target in reversed(targets):
+                tile = target.tile
+                with tile.lock:
+                    tile.pins -= 1
+                    target.pinned = False
+                    if target.how == "resident" or tile.pins or tile.evicted \
+                            or tile.version != target.version \
+                            or self.tiles.get(tile.index) is not tile:
+                        continue
+                    tile.evicted = True
+                    del self.tiles[tile.index]
+                    self._account(-tile.nbytes)
+                    if target.how == "loaded":
+                        self.stored.add(tile.index)  # as it was: stored, not resident
+
+    def _add(self, target: _Target, lid: int, stamp: float,
+             mark: tuple[str, Mark] | None) -> TileIndex | None:
+        """Phase 2 for one tile: Eq. 1 under its lock, then unpinned."""
+        index, (u0, v0, w, h), patch = target.part.index, target.part.block, target.part.patch
+        tile: Tile | None = target.tile
+        while tile is not None:
+            with tile.lock:
+                if target.pinned and tile is target.tile:
+                    tile.pins -= 1
+                    target.pinned = False
+                if not tile.evicted:
+                    plane = self._plane(tile, lid, target.fresh)
+                    target.fresh = None
+                    self._decay_for_write(tile, lid, stamp)
+                    logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], patch, self.limits)
+                    tile.version = self.tick()
+                    tile.stamp = max(tile.stamp, stamp)
+                    if mark is not None:
+                        tile.applied[mark[0]] = mark[1]
+                    return index
+            # Replaced (insert_tile) or removed (discard) since phase 1: the map's tile now.
+            tile = self.get_tile(index)
+            if tile is None and informative(patch):
+                tile = self.get_tile(index, create=True)
+        return None
+
+    def _unpin(self, targets: list[_Target]) -> None:
+        """Pins phase 2 did not release (it raised): released."""
+        for target in targets:
+            if target.pinned:
+                with target.tile.lock:
+                    target.tile.pins -= 1
+                    target.pinned = False
+
+
+@dataclass(eq=False, slots=True)
+class _Target:
+    """One tile a fuse writes: its patch, the tile (pinned), how phase 1 got it, its version
+    then, and the plane to add if the tile lacked the layer."""
+
+    part: TilePatch
+    tile: Tile
+    how: str  # "resident", "loaded" or "created"
+    version: int
+    fresh: npt.NDArray[np.int16] | None = None
+    pinned: bool = True
+
+
+_SCRATCH_MAX = 64 * 256 * 256 * 4
+"""Bytes of warped patches a thread keeps between ISMs, at most (64 float32 tiles of 256)."""
+
+
+class _Scratch(threading.local):
+    """Per thread: the memory of one ISM's warped patches (fuse's phase 1 keeps them all until
+    phase 2 has added them), kept for the next ISM: fresh arrays of this size are mmapped and
+    page-faulted by glibc on every call, which costs as much as the warp.  It grows to the
+    largest footprint seen, up to :data:`_SCRATCH_MAX`; patches beyond are fresh arrays."""
+
+    def __init__(self) -> None:
+        self.buf: npt.NDArray[np.uint8] = np.empty(0, np.uint8)
+        self.used = 0
+
+    def reset(self) -> _Scratch:
+        self.used = 0
+        return self
+
+    def take(self, h: int, w: int, dtype: np.dtype) -> npt.NDArray:
+        dtype = np.dtype(dtype)
+        n = h * w * dtype.itemsize
+        start = -(-self.used // 64) * 64
+        if start + n > self.buf.size:
+            if start + n > _SCRATCH_MAX:
+                return np.empty((h, w), dtype)
+            # A bigger buffer from 0; the patches already taken keep the old one alive.
+            self.buf = np.empty(min(_SCRATCH_MAX, max(2 * self.buf.size, 4 * n)), np.uint8)
+            start = 0
+        self.used = start + n
+        return self.buf[start:start + n].view(dtype).reshape(h, w)
+
+
+_scratch = _Scratch()
+
+
+def planes_of(ids: list[int], stack: npt.NDArray[np.int16],
+              limits: tuple[int, int] | None = None) -> dict[int, npt.NDArray[np.int16]]:
+    """``stack[k]`` as the plane of layer ``ids[k]`` (each its own array; clipped to
+    ``limits`` if given), all-zero layers left out (absent means unknown)."""
+    planes: dict[int, npt.NDArray[np.int16]] = {}
+    for k, lid in enumerate(ids):
+        plane = np.array(stack[k], dtype=np.int16) if limits is None \
+            else np.clip(stack[k], np.int16(limits[0]), np.int16(limits[1])).astype(np.int16,
+                                                                                 copy=False)
+        if plane.any():
+            planes[lid] = plane
+        else:
+            planes.pop(lid, None)  # a repeated name: the last one counts, as it did
+    return planes
 
 
 def _is_aligned(src: GridGeometry, dst: GridGeometry) -> bool:

@@ -18,7 +18,7 @@ nothing; the caller counts and logs it as every other refusal.  The arithmetic l
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Container, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
@@ -106,8 +106,9 @@ class Admission:
                                    f"the limit; refusing layer {layer[:64]!r}", "layer")
         backlog = self._has_store and self.store_backlog is not None and self.store_backlog()
         if not self._has_store or backlog:
-            return self._check_memory(foot, tiled.tiles, tiled.resident_bytes(),
-                                      n_layers + int(new_layer), new_layer,
+            return self._check_memory(foot, tiled,
+                                      None if new_layer else tiled.layer_id(layer),
+                                      n_layers + int(new_layer),
                                       "the tile store's writer is saturated "
                                       "(max_writer_queue_mb)" if backlog
                                       else "there is no tile store to evict to")
@@ -123,20 +124,25 @@ class Admission:
     def reserved_bytes(self) -> int:
         return self._reserved
 
-    def _check_memory(self, foot: fp.Footprint, resident: Container[TileIndex],
-                      resident_bytes: int, layers_after: int, new_layer: bool,
-                      why: str) -> int:
+    def _check_memory(self, foot: fp.Footprint, tiled: TiledMap, lid: int | None,
+                      layers_after: int, why: str) -> int:
         """When nothing can be evicted (no store, or its writer saturated): refuse what could
         grow the tiles past the budget (priced as if every footprint tile were written: an
-        upper bound); otherwise reserve that growth until the ISM is fused."""
+        upper bound); otherwise reserve that growth until the ISM is fused.  A tile holds a
+        plane per layer written into it: writing costs one plane where the tile lacks this
+        layer's (``lid``; None: a new layer), a stored tile loaded back at most one per
+        layer."""
+        resident_bytes = tiled.resident_bytes()
+        resident, stored = tiled.tiles, tiled.stored
         plane = self.tile_size * self.tile_size * 2
         i0, j0, i1, j1 = foot.tiles
         grow = 0
         for j in range(j0, j1 + 1):  # at most max_ism_tiles: footprint() checked that
             for i in range(i0, i1 + 1):
-                if (i, j) not in resident:
+                tile = resident.get((i, j))
+                if tile is None and (i, j) in stored:
                     grow += layers_after * plane
-                elif new_layer:
+                elif tile is None or lid is None or lid not in tile.planes:
                     grow += plane
         if not grow:  # existing tiles may always be written
             return 0

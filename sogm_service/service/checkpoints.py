@@ -202,8 +202,9 @@ class Checkpointer:
                 self.stats.count("evictions_deferred_writer_full")
                 continue
             tile = tiled.evict(index, before=self._submit_if_dirty)
-            over -= tile.nbytes if tile is not None else 0
-            self.stats.count("tiles_evicted")
+            if tile is not None:  # None: gone meanwhile, or pinned by a fuse in progress
+                over -= tile.nbytes
+                self.stats.count("tiles_evicted")
 
     def _submit_if_dirty(self, snap: TileSnapshot) -> None:
         if snap.dirty:

@@ -51,7 +51,7 @@ import numpy.typing as npt
 import zenoh
 
 from sogm_service.core.rendezvous import Ownership
-from sogm_service.core.tiles import Mark, Tile, TiledMap
+from sogm_service.core.tiles import Mark, Tile, TiledMap, planes_of
 from sogm_service.core.tiletypes import TileIndex
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
@@ -501,11 +501,7 @@ class Cluster:
     def _as_tile(self, index: TileIndex, names: list[str],
                  stack: npt.NDArray[np.int16]) -> Tile:
         """A fetched tile in this map's layer order (read-only use)."""
-        ids = self.tiled.adopt_layers(names)
-        t = self.tiled.tile_size
-        data = np.zeros((len(self.tiled.layers), t, t), dtype=np.int16)
-        data[ids] = stack
-        return Tile(index, data)
+        return Tile(index, planes_of(self.tiled.adopt_layers(names), stack))
 
     def query_map(self) -> TiledMap:
         """The map a window query reads: this member's tiles and its owners' for the rest."""
