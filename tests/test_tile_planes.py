@@ -85,11 +85,12 @@ def test_a_tile_written_in_one_of_1000_layers_holds_one_plane() -> None:
     assert list(lone.planes) == [999] and lone.nbytes == PLANE
     assert m.tiles[(0, 0)].nbytes == 999 * PLANE
     assert m.resident_bytes() == truth(m) == 1000 * PLANE
-    snap = m.snapshot((3, 0))  # still a full stack in the map's layer order
-    assert snap is not None and snap.data.shape == (1000, T, T)
-    assert not snap.data[:999].any() and (snap.data[999, 2:6, 2:6] == 70).all()
-    names, stack = m.tile_layers(lone)
-    assert names == m.layers and np.array_equal(stack, snap.data)
+    snap = m.snapshot((3, 0))  # sparse: the one layer this tile has, not 1,000 planes
+    assert snap is not None and snap.layers == ["l0999"] and snap.data.shape == (1, T, T)
+    assert (snap.data[0, 2:6, 2:6] == 70).all()
+    names, stack = m.tile_layers(lone)  # the full stack in the map's layer order
+    assert names == m.layers and stack.shape == (1000, T, T)
+    assert not stack[:999].any() and np.array_equal(stack[999], snap.data[0])
 
 
 def test_1000_new_layers_on_the_same_4_tiles_cost_memory_linear_in_planes_written() -> None:
@@ -157,8 +158,8 @@ def test_inserted_and_loaded_stacks_keep_all_zero_layers_absent() -> None:
     tile = m.insert_tile((0, 0), ["x", "empty", "y"], stack, 1.0, saved=True)
     assert tile.nbytes == 2 * PLANE
     snap = m.snapshot((0, 0))
-    assert snap is not None and snap.layers == ["x", "empty", "y"]
-    np.testing.assert_array_equal(snap.data, stack)
+    assert snap is not None and snap.layers == ["x", "y"]  # the all-zero layer stays absent
+    np.testing.assert_array_equal(snap.data, stack[[0, 2]])
     assert m.resident_bytes() == truth(m) == 4 * PLANE
 
 

@@ -111,8 +111,9 @@ class Tile:
 
 @dataclass(frozen=True)
 class TileSnapshot:
-    """A consistent copy of one tile: layer names, ``(n, T, T)`` data, stamp and version, and
-    whether that version was not stored yet."""
+    """A consistent copy of one tile: the names of the layers it has a plane of (in the map's
+    order), their ``(n, T, T)`` data, stamp and version, and whether that version was not
+    stored yet."""
 
     index: TileIndex
     layers: list[str]
@@ -308,9 +309,18 @@ class TiledMap:
             return None if tile.evicted else self._snapshot_locked(tile)
 
     def _snapshot_locked(self, tile: Tile) -> TileSnapshot:
-        names, data = self.tile_layers(tile)  # already a copy
-        return TileSnapshot(tile.index, names, data, tile.stamp, tile.version,
-                            tile.dirty, {names[k]: t for k, t in sorted(tile.decay.items())},
+        """Sparse: the layers this tile has a plane of, in the map's order (a tile of one
+        layer in a map of a thousand copies one plane; the store and replicas carry layer
+        names per tile)."""
+        lids = sorted(tile.planes)
+        t = self.tile_size
+        data = np.empty((len(lids), t, t), dtype=np.int16)
+        for k, lid in enumerate(lids):
+            data[k] = tile.planes[lid]
+        return TileSnapshot(tile.index, [self.layers[lid] for lid in lids], data, tile.stamp,
+                            tile.version, tile.dirty,
+                            {self.layers[k]: t_d for k, t_d in sorted(tile.decay.items())
+                             if k in tile.planes},
                             dict(tile.applied))
 
     def _plane(self, tile: Tile, lid: int,
