@@ -18,13 +18,14 @@ from sogm_service.bench import transport
 from sogm_service.bench.core import Row, median, percentile
 from sogm_service.bench.zbench import (
     PY,
-    WINDOW,
     Proc,
     Served,
     _fill_layers,
     _publisher,
+    bench_layers,
     map_server,
     wait_fused,
+    window,
 )
 from sogm_service.service.client import MapClient
 
@@ -38,7 +39,7 @@ def _timed_queries(client: MapClient, seconds: float, busy: threading.Event | No
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end or (busy is not None and busy.is_set()):
         t0 = time.perf_counter()
-        client.submap(**WINDOW)
+        client.submap(**window())
         out.append(time.perf_counter() - t0)
         time.sleep(max(0.0, 1.0 / QUERY_HZ - (time.perf_counter() - t0)))
         if busy is not None and not busy.is_set() and time.monotonic() >= t_end:
@@ -89,7 +90,8 @@ def mixed_fleet(quick: bool) -> Row:
         how = transport.current()
         owner = ["--owner", how.robot] if how.client_config else []
         pace = Proc([PY, "-m", "sogm_service.bench.procs", "paced", "--connect",
-                     served.endpoint, *owner, *how.client_args()], d / "paced.log", stdin=True)
+                     served.endpoint, "--layers", ",".join(bench_layers()), *owner,
+                     *how.client_args()], d / "paced.log", stdin=True)
         results = {}
         try:
             pace.expect("ready", 60.0)

@@ -84,8 +84,10 @@ def run_counter(args: argparse.Namespace, stop: threading.Event) -> None:
         session.close()
 
 
-def ism_payloads(count: int, size: int, seed: int = 0) -> list[bytes]:
-    """``count`` encoded 256x256-class ISMs at robot-like poses (any heading) in a 20 m area."""
+def ism_payloads(count: int, size: int, seed: int = 0,
+                 layers: list[str] | None = None) -> list[bytes]:
+    """``count`` encoded 256x256-class ISMs at robot-like poses (any heading) in a 20 m area;
+    with ``layers``, ISM k names layer ``layers[k % len(layers)]`` (else its key decides)."""
     import numpy as np
 
     from sogm_service.bench.compute import MAP_RES, ism_message, synthetic_ism
@@ -97,7 +99,10 @@ def ism_payloads(count: int, size: int, seed: int = 0) -> list[bytes]:
     for k in range(count):
         x, y = rng.uniform(0.0, 20.0, 2)
         yaw = float(rng.uniform(-math.pi, math.pi))
-        out.append(codec.encode(ism_message(codes[k % 4], MAP_RES, Pose2D(x, y, yaw))))
+        msg = ism_message(codes[k % 4], MAP_RES, Pose2D(x, y, yaw))
+        if layers:
+            msg = msg.model_copy(update={"layer": layers[k % len(layers)]})
+        out.append(codec.encode(msg))
     return out
 
 
@@ -121,7 +126,9 @@ def run_publisher(args: argparse.Namespace, stop: threading.Event) -> None:
 
 
 def run_paced(args: argparse.Namespace, stop: threading.Event) -> None:
-    payloads = ism_payloads(64, args.size)
+    # The fleet writes the layers the bench's client reads (--layers): the contention a query
+    # meets when robots map what it asks for; without, each key is its own layer.
+    payloads = ism_payloads(64, args.size, layers=args.layers.split(",") if args.layers else None)
     # Under access control one identity puts under its own name only: ism/<owner>/robot<r>/...
     keys = [f"ism/{args.owner}/robot{r}/class{c}" if args.owner else
             f"ism/robot{r}/sensor/class{c}" for r in range(args.robots) for c in range(4)]
@@ -169,6 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--robots", type=int, default=8)
     pc.add_argument("--size", type=int, default=256)
     pc.add_argument("--owner", default=None, help="the robot identity every key is under")
+    pc.add_argument("--layers", default=None, help="comma-separated layers the ISMs name")
     for role in (q, c, pb, pc):
         role.add_argument("--zenoh-config", type=Path, default=None,
                           help="open the session from this Zenoh config (endpoints replaced)")

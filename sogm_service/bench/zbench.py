@@ -158,6 +158,17 @@ WINDOW: dict[str, Any] = dict(x=12.8, y=12.8, yaw=0.5, width=256 * MAP_RES, heig
                               resolution=MAP_RES, interp="biodds", encoding="prob_f32")
 
 
+def bench_layers() -> list[str]:
+    """The four layers the sub-map benchmarks fill and ask for, by name."""
+    return [transport.current().ism_key(f"layer{k}").removeprefix("ism/") for k in range(4)]
+
+
+def window() -> dict[str, Any]:
+    """:data:`WINDOW` naming its four layers: the same 256x256x4 reply however many layers
+    other ISMs add to the map meanwhile (a fleet's own layers would otherwise grow it)."""
+    return {**WINDOW, "layers": bench_layers()}
+
+
 def _fill_layers(client: MapClient, layers: int) -> None:
     for k in range(layers):
         client.publish_ism(transport.current().ism_key(f"layer{k}"), synthetic_ism(512, k),
@@ -172,7 +183,7 @@ def submap(quick: bool) -> Row:
             map_server(Path(tmp)) as served:
         client = served.client
         _fill_layers(client, 4)
-        size = len(client.get_raw(client.key("submap"), WINDOW))
+        size = len(client.get_raw(client.key("submap"), window()))
         how = transport.current()
         raw_ep = how.endpoint()
         # The same key as the server's queryable (another process, its own network): the
@@ -180,7 +191,7 @@ def submap(quick: bool) -> Row:
         with helper(Path(tmp), "queryable", "--listen", raw_ep, "--key", client.key("submap"),
                     "--size", str(size)), \
                 MapClient.connect(timeout=10.0, zenoh_settings=how.client(raw_ep)) as raw:
-            ours, base = interleaved(lambda: client.submap(**WINDOW),
+            ours, base = interleaved(lambda: client.submap(**window()),
                                      lambda: raw.get_raw(raw.key("submap")), repeats,
                                      warmup=5)
         handler = client.stats().latency_ms.get("submap", {}).get("p50", 0.0)
