@@ -452,7 +452,8 @@ class Cluster:
         applied = [[k, [v[0], v[1]]] for k, v in snap.applied.items()]
         if digest is not None and digest == content_digest(snap.layers, snap.data):
             return msgpack.packb({"status": "same", "applied": applied})
-        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp)
+        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
+                             applied=snap.applied)
         return msgpack.packb({"status": "tile", "applied": applied,
                               "blob": tile_to_bytes(header, snap.data)})
 
