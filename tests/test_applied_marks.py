@@ -25,6 +25,7 @@ from sogm_service.core.rendezvous import Ownership
 from sogm_service.core.tiles import TiledMap
 from sogm_service.core.tiletypes import Mark, TileIndex
 from sogm_service.service.checkpoints import Checkpointer
+from sogm_service.service.client import MapClient
 from sogm_service.service.cluster import Cluster
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fusers import FuseJob, FuseWorkers
@@ -43,7 +44,8 @@ from sogm_service.store.format import (
 )
 from sogm_service.store.writer import TileWriter
 from sogm_service.wire.errors import TileFormatError
-from tests.conftest import wait_until
+from tests import test_cluster as cl
+from tests.conftest import ServerProcess, start_server, wait_until
 
 RES = 0.1
 T = 16
@@ -362,3 +364,83 @@ def test_the_replay_plan_with_stored_marks_neither_loses_nor_repeats(tmp_path: P
     assert stored == live
     keep, skip = replay_plan(jobs[1:], stored)
     assert [j.stamp for j in keep] == [5.0, 6.0] and not skip
+
+
+# -- two member processes -------------------------------------------------------------------
+@pytest.fixture
+def procs() -> Iterator[list[ServerProcess]]:
+    started: list[ServerProcess] = []
+    yield started
+    for p in started:
+        if p.proc.poll() is None:
+            p.proc.kill()  # ours, by pid
+            p.proc.wait(10)
+
+
+def _small_member(tmp_path: Path, name: str, peers: list[ServerProcess],
+                  servers: int) -> ServerProcess:
+    """A cluster member (tile size and resolution of test_cluster) whose memory budget holds
+    about one tile, so it evicts nearly every tile it fuses (outside the robots' own tiles)."""
+    sections: dict[str, dict[str, Any]] = {
+        "map": {"resolution": cl.RES, "tile_size": cl.TILE},
+        "cluster": {"enabled": True, "replicas": 2, "fetch_cache_s": 0.0},
+        "storage": {"directory": str(tmp_path / f"store-{name}"),
+                    "checkpoint_interval_s": 0.5, "memory_budget_mb": 0.002},
+        "tiles": {"roi_radius_tiles": 0},
+        "zenoh": {"listen": [free_tcp_endpoint()], "connect": [p.endpoint for p in peers]},
+    }
+    return start_server(tmp_path, sections, name=name, servers=servers, wait=40.0)
+
+
+@pytest.mark.flaky(reruns=2)
+@pytest.mark.timeout(180)
+def test_a_joiner_pulling_evicted_tiles_equals_a_single_server(
+        tmp_path: Path, procs: list[ServerProcess]) -> None:
+    """Member a evicts nearly every tile (memory budget) while the fleet publishes; member b
+    joins while the fleet keeps publishing (so its journal holds ISMs a's evicted copies
+    already have) and pulls every tile from a (replicas 2 over 2 members: both own all).
+    b's map equals a single reference server's bit for bit: no ISM lost, none fused twice."""
+    a = _small_member(tmp_path, "a", [], 1)
+    procs.append(a)
+    ref = cl._reference(tmp_path, [a])
+    procs.append(ref)
+    fleet = cl.Fleet(a.endpoint, seed=23)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        fleet.publish(4)
+        assert wait_until(lambda: cl._all_fused(observer, fleet.sent, 1), 60)
+        assert observer.stats().counters.get("tiles_evicted", 0) > 0
+        stop = threading.Event()
+
+        def publish_meanwhile() -> None:
+            while not stop.is_set():
+                fleet.publish(1)
+                stop.wait(0.15)
+
+        publisher = threading.Thread(target=publish_meanwhile)
+        publisher.start()
+        try:
+            b = _small_member(tmp_path, "b", [a], 2)
+            procs.append(b)
+            stop.wait(1.0)  # and a little after b declared itself
+        finally:
+            stop.set()
+            publisher.join(30)
+        assert wait_until(lambda: cl._all_fused(observer, 0, 2), 60)
+        stats = cl._member_stats(observer)
+        joined = next(st for st in stats.values()
+                      if st["counters"].get("cluster_tiles_pulled", 0) > 0)
+        assert joined["counters"].get("isms_fused", 0) < fleet.sent  # it did join late
+        expected = cl._reference_map(ref, fleet.sent)
+        assert np.abs(expected).sum() > 0
+        # b's own ISMs after the join may still be on their way: wait for them, then the
+        # comparison is exact (a tile fused twice never comes back to equal).
+        assert wait_until(lambda: max(st["counters"].get("isms_fused", 0)
+                                      for st in cl._member_stats(observer).values())
+                          >= fleet.sent, 60)
+        assert wait_until(lambda: np.array_equal(cl._submap(b.endpoint), expected), 30), \
+            "the joined member's map differs from the single server's"
+        assert np.array_equal(cl._submap(a.endpoint), expected)
+    finally:
+        observer.close()
+        fleet.close()
