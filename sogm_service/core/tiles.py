@@ -55,12 +55,9 @@ from sogm_service.core.resample import (
     tile_patches,
 )
 from sogm_service.core.tiletypes import Loader, TileIndex
+from sogm_service.core.tiletypes import Mark as Mark  # re-exported (its home before)
 
 _ALIGN_TOL = 1e-6
-
-
-Mark = tuple[float, int]
-"""An ISM's identity within its key: ``(stamp, digest)``."""
 
 
 @dataclass(eq=False)
@@ -85,7 +82,8 @@ class Tile:
     # its cells are decayed (absent: the tile's ``stamp``).  Guarded by ``lock``.
     decay: dict[int, float] = field(default_factory=dict)
     applied: dict[str, Mark] = field(default_factory=dict, repr=False)
-    """The last ISM fused here per ISM key (a cluster's handover uses it; in memory only)."""
+    """The last ISM fused here per ISM key (a cluster's handover uses it); stored with the
+    tile (the ``applied`` header field) and adopted again when it is loaded back."""
     pins: int = 0
     """Fuses that hold this tile between their two phases (:meth:`TiledMap.fuse`); a pinned
     tile is not evicted.  Guarded by ``lock``."""
@@ -226,6 +224,8 @@ class TiledMap:
         tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
                     saved_version=version)
         self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)
+        if len(loaded) > 4:
+            tile.applied = dict(loaded[4])
         self.tiles[index] = tile
         self._account(tile.nbytes)
         return tile

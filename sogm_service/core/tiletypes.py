@@ -18,9 +18,17 @@ TileIndex = tuple[int, int]
 Fixed = npt.NDArray[np.int16]
 """Fixed-point log-odds (:mod:`sogm_service.core.logodds`)."""
 
-LoaderResult = tuple[list[str], Fixed, float] | tuple[list[str], Fixed, float, dict[str, float]]
+Mark = tuple[float, int]
+"""An ISM's identity within its key: ``(stamp, digest)`` (a cluster's handover compares them)."""
+
+LoaderResult = (tuple[list[str], Fixed, float]
+                | tuple[list[str], Fixed, float, dict[str, float]]
+                | tuple[list[str], Fixed, float, dict[str, float], dict[str, Mark]])
 """A tile brought back from storage: ``(layer names, (N, T, T) stack, stamp)``, and for a tile
-with decaying layers its decay stamps ``{layer: decayed up to}`` (:mod:`.forget`)."""
+with decaying layers its decay stamps ``{layer: decayed up to}`` (:mod:`.forget`) as a fourth
+item, and for a tile with applied marks (the last ISM fused into it per ISM key, ``Tile.applied``)
+those as a fifth (the fourth then ``{}`` when nothing decays).  Items are added at the end so
+that loaders of the shorter shapes keep working."""
 
 Loader = Callable[[int, int], LoaderResult | None]
 """Brings back tile ``(i, j)`` that is not resident, or None when there is none."""

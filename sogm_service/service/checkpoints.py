@@ -155,7 +155,7 @@ class Checkpointer:
         """A tile's snapshot (already a copy: the paper's double buffer) to the writer."""
         assert self.writer is not None
         self.writer.submit(snap.index[0], snap.index[1], snap.layers, snap.data, snap.stamp,
-                           token=snap.version, decay=snap.decay)
+                           token=snap.version, decay=snap.decay, applied=snap.applied)
 
     def _saved(self, index: TileIndex, token: Any) -> None:
         if self._tiled is not None and isinstance(token, int):

@@ -12,7 +12,7 @@ cluster without a coordinator:
   replica), in arrival order: :meth:`Cluster.scope` gives each ISM's fuse job the set of its
   tiles this member may write (:class:`~sogm_service.service.fusers.FuseWorkers` combines it
   with the fuse workers' own shares).  Each tile records, per ISM key, the last ISM fused into
-  it (stamp and a digest of the payload: ``Tile.applied``).
+  it (stamp and a digest of the payload: ``Tile.applied``, stored with the tile).
 * **Handover**: when the membership changes from ``prev`` to ``view``, the tiles this member
   owns under ``view`` and did not own under ``prev`` are *pending*: ISMs touching them are
   kept in a journal instead of being fused.  Each is pulled from a member that owns it and is
@@ -452,7 +452,8 @@ class Cluster:
         applied = [[k, [v[0], v[1]]] for k, v in snap.applied.items()]
         if digest is not None and digest == content_digest(snap.layers, snap.data):
             return msgpack.packb({"status": "same", "applied": applied})
-        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp)
+        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
+                             applied=snap.applied)
         return msgpack.packb({"status": "tile", "applied": applied,
                               "blob": tile_to_bytes(header, snap.data)})
 

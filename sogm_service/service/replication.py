@@ -19,7 +19,13 @@ from sogm_service.core.tiletypes import TileIndex
 from sogm_service.service.checkpoints import Checkpointer
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.stats import Stats
-from sogm_service.store.format import Expectation, tile_from_bytes, tile_header, tile_to_bytes
+from sogm_service.store.format import (
+    Expectation,
+    marks_of,
+    tile_from_bytes,
+    tile_header,
+    tile_to_bytes,
+)
 from sogm_service.wire.errors import TileFormatError
 from sogm_service.wire.keys import tile_of_key
 
@@ -60,7 +66,7 @@ class Replication:
             store = self.tiles.store
             return store.read_bytes(*index) if store is not None else None
         header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
-                             self._plane, snap.decay)
+                             self._plane, snap.decay, snap.applied)
         return tile_to_bytes(header, snap.data)
 
     def replicate(self, session: zenoh.Session, timeout: float = 30.0) -> int:
@@ -89,7 +95,7 @@ class Replication:
                 continue
             h = tile.header
             self.tiled.insert_tile(h.index, list(h.layers), np.array(tile.data), h.stamp,
-                                   saved=False, decay=dict(h.decay))
+                                   saved=False, decay=dict(h.decay), applied=marks_of(h))
             copied += 1
         self.stats.count("replica_tiles_copied", copied)
         log.info("replication: copied %d tiles from a live server", copied)

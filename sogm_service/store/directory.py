@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Final
 
 from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
-from sogm_service.core.tiletypes import LoaderResult, TileIndex
+from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.format import (
     DEFAULT_LEVEL,
     SUFFIX,
@@ -160,9 +160,10 @@ class DirectoryStore:
                                    f"{SUFFIX}")
 
     def header_for(self, i: int, j: int, layers: Sequence[str],
-                   stamp: float, decay: dict[str, float] | None = None) -> TileHeader:
+                   stamp: float, decay: dict[str, float] | None = None,
+                   applied: dict[str, Mark] | None = None) -> TileHeader:
         """The header this store writes for tile ``(i, j)``."""
-        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay)
+        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay, applied)
 
     # -- index ----------------------------------------------------------------------------
     def index(self) -> dict[TileIndex, TileFileInfo]:
@@ -249,10 +250,12 @@ class DirectoryStore:
 
     # -- writing --------------------------------------------------------------------------
     def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
-              stamp: float, decay: dict[str, float] | None = None) -> TileFileInfo:
+              stamp: float, decay: dict[str, float] | None = None,
+              applied: dict[str, Mark] | None = None) -> TileFileInfo:
         """Encode and atomically write one tile (synchronous; :class:`TileWriter` runs this).
-        ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.forget`)."""
-        header = self.header_for(i, j, layers, stamp, decay)
+        ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.forget`); ``applied``:
+        the tile's marks (``Tile.applied``)."""
+        header = self.header_for(i, j, layers, stamp, decay, applied)
         return self._write_blob(header, tile_to_bytes(header, data, self.level))
 
     def write_bytes(self, blob: bytes) -> TileFileInfo:

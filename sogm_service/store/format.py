@@ -23,7 +23,12 @@ JSON header fields: ``map``, ``frame``, ``i``, ``j``, ``resolution``, ``tile_siz
 ``datum`` (WGS-84 ``latitude``/``longitude``/``altitude`` of the tile origin, or null),
 ``stamp`` (time of the newest data in the tile), ``compression`` (``"zlib"``), ``level``,
 ``raw_len``, ``payload_len``, ``payload_crc32`` (CRC-32 of the compressed payload) and
-``written_unix`` (wall-clock time of the write).
+``written_unix`` (wall-clock time of the write).  Optional fields, written only when non-empty
+(additive within version 1: older readers ignore them, and a tile without them encodes exactly as
+before they existed): ``decay`` (``{layer: decayed up to}``, issue 19) and ``applied``
+(``{ISM key: [stamp, digest]}``: the last ISM fused into the tile per ISM key, which a cluster's
+handover compares with its journal; at most :data:`MAX_APPLIED` entries, keys of at most
+:data:`MAX_APPLIED_KEY` characters, finite stamps, digests in ``[0, 2**64)``).
 
 Validation (a file failing any check is *reported* with a reason, logged, and moved into
 ``quarantine/`` with a ``.reason.txt`` next to it; it is never loaded and never fatal): magic,
@@ -51,7 +56,7 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeoPoint, LocalTangentPlane
-from sogm_service.core.tiletypes import LoaderResult, TileIndex, tile_token
+from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex, tile_token
 from sogm_service.wire.errors import TileFormatError
 
 MAGIC: Final = b"SOGMTILE"
@@ -70,6 +75,12 @@ _CRC = struct.Struct("<I")
 _MAX_HEADER: Final = 1 << 20  # a header is a few hundred bytes; a huge length is corruption
 _MAX_LAYERS: Final = 4096
 _RES_TOL: Final = 1e-9
+MAX_APPLIED: Final = 4096
+"""Most ``applied`` marks a tile file holds (one per ISM key that wrote into the tile)."""
+MAX_APPLIED_KEY: Final = 1024
+"""Longest ISM key (characters) of an ``applied`` mark (a Zenoh key of prefix, map, robot and
+layer: each of those is bounded far below this)."""
+_DIGEST_END: Final = 1 << 64
 
 Fixed = npt.NDArray[np.int16]
 
@@ -94,6 +105,9 @@ class TileHeader:
     # Optional (issue 19, additive in version 1): decaying layer -> the time up to which its
     # cells are decayed.  Written only when non-empty; readers before it ignore the field.
     decay: tuple[tuple[str, float], ...] = ()
+    # Optional (issue 20, additive in version 1): ISM key -> (stamp, digest) of the last ISM
+    # fused into the tile (``Tile.applied``), sorted by key.  Written only when non-empty.
+    applied: tuple[tuple[str, float, int], ...] = ()
 
     @property
     def index(self) -> TileIndex:
@@ -121,7 +135,11 @@ class StoredTile:
 
     def as_loader_result(self) -> LoaderResult:
         """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.core.tiles.Loader`
-        (with the decay stamps as a fourth item when the tile has any)."""
+        (with the decay stamps as a fourth item when the tile has any, and the applied marks as
+        a fifth when it has any)."""
+        if self.header.applied:
+            return (list(self.header.layers), self.data, self.header.stamp,
+                    dict(self.header.decay), marks_of(self.header))
         if self.header.decay:
             return (list(self.header.layers), self.data, self.header.stamp,
                     dict(self.header.decay))
@@ -140,9 +158,11 @@ class Expectation:
 
 def tile_header(expect: Expectation, i: int, j: int, layers: Sequence[str], stamp: float,
                 plane: LocalTangentPlane | None = None,
-                decay: dict[str, float] | None = None) -> TileHeader:
+                decay: dict[str, float] | None = None,
+                applied: dict[str, Mark] | None = None) -> TileHeader:
     """The header of tile ``(i, j)`` of the map ``expect`` describes; with a local tangent
-    ``plane`` (the map's datum) it carries the geodetic position of the tile's origin."""
+    ``plane`` (the map's datum) it carries the geodetic position of the tile's origin, and
+    ``applied`` marks (:func:`bounded_marks`) when given."""
     datum = None
     if plane is not None:
         span = expect.resolution * expect.tile_size
@@ -150,7 +170,27 @@ def tile_header(expect: Expectation, i: int, j: int, layers: Sequence[str], stam
     return TileHeader(map_name=expect.map_name, frame=expect.frame or "map", i=i, j=j,
                       resolution=expect.resolution, tile_size=expect.tile_size,
                       layers=tuple(layers), stamp=float(stamp), datum=datum,
-                      decay=tuple(sorted((str(k), float(v)) for k, v in (decay or {}).items())))
+                      decay=tuple(sorted((str(k), float(v)) for k, v in (decay or {}).items())),
+                      applied=bounded_marks(applied))
+
+
+def bounded_marks(applied: dict[str, Mark] | None) -> tuple[tuple[str, float, int], ...]:
+    """``applied`` as the header holds it: sorted by key, only marks a reader accepts (a mark
+    with an empty or over-long key, a non-finite stamp or a digest outside 64 bits is left
+    out), and at most :data:`MAX_APPLIED` of them, the newest by stamp.  A mark left out
+    costs only a handover's precision for that key (its journaled ISMs are replayed from the
+    first), never the tile: a file a reader would refuse is never written."""
+    marks = [(str(k), float(m[0]), int(m[1])) for k, m in (applied or {}).items()
+             if 0 < len(str(k)) <= MAX_APPLIED_KEY and math.isfinite(float(m[0]))
+             and 0 <= int(m[1]) < _DIGEST_END]
+    if len(marks) > MAX_APPLIED:
+        marks = sorted(marks, key=lambda m: (m[1], m[0]))[-MAX_APPLIED:]
+    return tuple(sorted(marks))
+
+
+def marks_of(header: TileHeader) -> dict[str, Mark]:
+    """A header's ``applied`` marks as ``Tile.applied`` holds them."""
+    return {k: (t, d) for k, t, d in header.applied}
 
 
 def resolution_token(resolution: float) -> str:
@@ -207,6 +247,8 @@ def _header_json(header: TileHeader, level: int, raw_len: int, payload: bytes) -
     }
     if header.decay:
         fields["decay"] = dict(header.decay)
+    if header.applied:
+        fields["applied"] = {k: [t, d] for k, t, d in header.applied}
     return json.dumps(fields, separators=(",", ":"), allow_nan=False).encode()
 
 
@@ -261,7 +303,8 @@ def _header_from_fields(f: dict[str, Any]) -> TileHeader:
                                                   float(datum["longitude"]),
                                                   float(datum["altitude"])),
         scale=float(_typed(f, "scale", (int, float))), version=FORMAT_VERSION,
-        written_unix=float(f.get("written_unix", 0.0)), decay=_decay_field(f, layers))
+        written_unix=float(f.get("written_unix", 0.0)), decay=_decay_field(f, layers),
+        applied=_applied_field(f))
     _check_header_consistency(header, f)
     return header
 
@@ -280,6 +323,29 @@ def _decay_field(f: dict[str, Any], layers: list[str]) -> tuple[tuple[str, float
             raise TileFormatError(f"header 'decay' entry {name!r}: {t!r} is not a stamp of "
                                   "one of the tile's layers")
         out.append((name, float(t)))
+    return tuple(sorted(out))
+
+
+def _applied_field(f: dict[str, Any]) -> tuple[tuple[str, float, int], ...]:
+    """The optional ``applied`` field: ``{ISM key: [finite stamp, digest in [0, 2**64)]}``."""
+    applied = f.get("applied")
+    if applied is None:
+        return ()
+    if not isinstance(applied, dict) or len(applied) > MAX_APPLIED:
+        raise TileFormatError(f"header 'applied' must map at most {MAX_APPLIED} ISM keys to "
+                              "[stamp, digest]")
+    out = []
+    for key, mark in applied.items():
+        if not (isinstance(key, str) and 0 < len(key) <= MAX_APPLIED_KEY
+                and isinstance(mark, list) and len(mark) == 2):
+            raise TileFormatError(f"header 'applied' entry {str(key)[:80]!r} is not an ISM key "
+                                  "with [stamp, digest]")
+        t, d = mark
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) \
+                or isinstance(d, bool) or not isinstance(d, int) or not 0 <= d < _DIGEST_END:
+            raise TileFormatError(f"header 'applied' entry {key[:80]!r}: {mark!r} is not a "
+                                  "finite stamp and a 64-bit digest")
+        out.append((key, float(t), d))
     return tuple(sorted(out))
 
 

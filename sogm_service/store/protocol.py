@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from sogm_service.core.tiletypes import LoaderResult, TileIndex
+from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.format import Expectation, Fixed, StoredTile, TileHeader
 
 
@@ -54,7 +54,8 @@ class TileStore(Protocol):
         ...
 
     def header_for(self, i: int, j: int, layers: Sequence[str], stamp: float,
-                   decay: dict[str, float] | None = None) -> TileHeader:
+                   decay: dict[str, float] | None = None,
+                   applied: dict[str, Mark] | None = None) -> TileHeader:
         """The header this store writes for tile ``(i, j)`` (map, frame, datum, ...)."""
         ...
 
@@ -71,8 +72,10 @@ class TileStore(Protocol):
         ...
 
     def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
-              stamp: float, decay: dict[str, float] | None = None) -> TileFileInfo:
-        """Encode and atomically store one tile."""
+              stamp: float, decay: dict[str, float] | None = None,
+              applied: dict[str, Mark] | None = None) -> TileFileInfo:
+        """Encode and atomically store one tile (with its decay stamps and applied marks, which
+        :meth:`loader` gives back)."""
         ...
 
     def close(self) -> None:

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from sogm_service.core.tiletypes import LoaderResult, TileIndex
+from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.format import Fixed, check_stack
 from sogm_service.store.protocol import TileStore
 
@@ -25,6 +25,7 @@ class _Job:
     stamp: float
     token: Any
     decay: dict[str, float] | None = None
+    applied: dict[str, Mark] | None = None
 
 
 @dataclass
@@ -67,12 +68,15 @@ class TileWriter:
 
     def submit(self, i: int, j: int, layers: list[str] | tuple[str, ...], data: Fixed,
                stamp: float, token: Any = None,
-               decay: dict[str, float] | None = None) -> None:
+               decay: dict[str, float] | None = None,
+               applied: dict[str, Mark] | None = None) -> None:
         """Queue a snapshot of tile ``(i, j)``; ``data`` must be a private copy (it is made
-        read-only here, so an accidental live array fails loudly instead of tearing)."""
+        read-only here, so an accidental live array fails loudly instead of tearing).
+        ``applied``: the tile's marks (``Tile.applied``), stored with it."""
         check_stack(tuple(layers), data, self.store.expect.tile_size)
         data.setflags(write=False)
-        job = _Job((i, j), tuple(layers), data, float(stamp), token, dict(decay or {}))
+        job = _Job((i, j), tuple(layers), data, float(stamp), token, dict(decay or {}),
+                   dict(applied or {}))
         with self._cond:
             if self._closing:
                 raise RuntimeError("tile writer is closed")
@@ -105,6 +109,9 @@ class TileWriter:
             if job is None and self._busy is not None and self._busy.index == (i, j):
                 job = self._busy
         if job is not None:
+            if job.applied:
+                return (list(job.layers), job.data.copy(), job.stamp, dict(job.decay or {}),
+                        dict(job.applied))
             if job.decay:
                 return list(job.layers), job.data.copy(), job.stamp, dict(job.decay)
             return list(job.layers), job.data.copy(), job.stamp
@@ -143,7 +150,7 @@ class TileWriter:
         t0 = time.perf_counter()
         try:
             info = self.store.write(job.index[0], job.index[1], job.layers, job.data, job.stamp,
-                                    job.decay or None)
+                                    job.decay or None, job.applied or None)
         except Exception as exc:  # disk full, permissions: report, never kill the thread
             self.stats.errors += 1
             self.stats.last_error = f"tile {job.index}: {exc}"
