@@ -28,7 +28,7 @@ from sogm_service.service.session import free_tcp_endpoint, loopback_settings, o
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError
 from sogm_service.wire.keys import MapKeys
-from sogm_service.wire.messages import ErrorReply, InfoReply
+from sogm_service.wire.messages import ErrorReply, GridReply, InfoReply
 from tests.conftest import ServerProcess, start_server, wait_until
 
 RES = 0.1
@@ -387,3 +387,52 @@ def _each_member_answers_its_own_key(observer: MapClient) -> None:
     for server_id in _member_stats(observer):
         key = MapKeys(observer.prefix, observer.map_name).member(server_id, "info")
         assert codec.decode(InfoReply, observer.get_raw(key)).server_id == server_id
+
+
+def _member_submap(client: MapClient, server_id: str) -> np.ndarray:
+    key = MapKeys(client.prefix, client.map_name).member(server_id, "submap")
+    reply = codec.decode(GridReply, client.get_raw(
+        key, {**WINDOW, "resolution": RES, "layers": LAYERS, "encoding": "logodds_i16"}))
+    return np.asarray(reply.data.array())
+
+
+@pytest.mark.timeout(120)
+def test_replicas_that_diverge_converge_to_their_primary(tmp_path: Path,
+                                                         procs: list[ServerProcess]) -> None:
+    """Member b also fuses ISMs from ``local/**``, which a never hears: their copies of the
+    tiles such an ISM touches differ until reconciliation makes each replica adopt its
+    primary's copy; afterwards both members hold the same bytes and keep fusing alike."""
+    a = _member(tmp_path, "a", [], 1, reconcile_interval_s=0.3)
+    procs.append(a)
+    b = start_server(tmp_path, {
+        "map": {"resolution": RES, "tile_size": TILE},
+        "cluster": {"enabled": True, "replicas": 2, "fetch_cache_s": 0.0,
+                    "reconcile_interval_s": 0.3},
+        "zenoh": {"listen": [free_tcp_endpoint()], "connect": [a.endpoint]},
+    }, ism=[{"key_expr": "ism/**"}, {"key_expr": "local/**"}], name="b", servers=2, wait=40.0)
+    procs.append(b)
+    fleet = Fleet(a.endpoint, seed=5)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    lone = MapClient(open_session(loopback_settings(connect=b.endpoint)))
+    try:
+        fleet.publish(2)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2), 60)
+        ids = sorted(_member_stats(observer))
+        assert len(ids) == 2
+        strong = np.full((48, 56), 230, np.uint8)  # far from the fleet's mild ISMs
+        lone.publish_ism("local/r1/laser/obstacle", strong, resolution=RES,
+                         origin=Pose2D(1.0, 1.0, 0.0), stamp=100.0)
+
+        def counted(name: str) -> int:
+            return sum(s["counters"].get(name, 0) for s in _member_stats(observer).values())
+
+        assert wait_until(lambda: counted("isms_fused") == 2 * fleet.sent + 1, 30)
+        assert wait_until(lambda: counted("cluster_tiles_reconciled") > 0 and np.array_equal(
+            _member_submap(observer, ids[0]), _member_submap(observer, ids[1])), 30)
+        fleet.publish(2)  # and they keep fusing alike
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2) and np.array_equal(
+            _member_submap(observer, ids[0]), _member_submap(observer, ids[1])), 30)
+    finally:
+        lone.close()
+        observer.close()
+        fleet.close()

@@ -28,11 +28,17 @@ cluster without a coordinator:
   needed tile answers, the query is refused with ``no_owner``.  Fetched tiles are kept
   ``fetch_cache_s`` (read-only, never fused, never stored).
 
-Limits (NOTES-cluster.md): replicas hold the same bytes when every member sees the ISMs that
-touch a tile in the same order, which Zenoh guarantees per publisher; two publishers writing one
-tile at the same moment may reach two members in different orders, and Eq. 1 with its clamp
-is order-independent only until a cell saturates.  Scan matching (which reads the map) is not
-supported in a cluster.
+* **Reconciliation**: replicas hold the same bytes when every member sees the ISMs that touch
+  a tile in the same order, which Zenoh guarantees per publisher only; two publishers writing
+  one tile at the same moment may reach two members in different orders, and Eq. 1 with its
+  clamp is order-independent only until a cell saturates (a lost message, or members with
+  different ISM sources, diverge too).  So every ``reconcile_interval_s`` a replica takes each
+  tile that changed since its last check and then stayed quiet for a whole interval, holds
+  back new ISMs for it (journal), waits for those already on their way to be fused, and asks
+  its primary with its content digest: ``same``, or the primary's copy, which it installs
+  before replaying the journal as a handover does.  The primary's copy wins.
+
+Scan matching (which reads the map) is not supported in a cluster.
 """
 
 from __future__ import annotations
@@ -101,6 +107,13 @@ class Cluster:
         self._journal: dict[TileIndex, list[FuseJob]] = {}
         self._journaled = 0
         self._skip: dict[TileIndex, dict[str, Mark]] = {}
+        # Reconciliation: tiles whose new ISMs are journaled meanwhile, ISMs on their way to
+        # the fuse per tile, and the versions seen at the last round and last confirmed.
+        self._reconciling: set[TileIndex] = set()
+        self._inflight: dict[TileIndex, int] = {}
+        self._flight = threading.Condition(self._gate)
+        self._seen: dict[TileIndex, int] = {}
+        self._checked: dict[TileIndex, int] = {}
         self._events: queue.Queue[tuple[str, str] | None] = queue.Queue()
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
@@ -161,8 +174,13 @@ class Cluster:
 
     def _follow(self) -> None:
         """Apply membership changes one transition at a time (batched over ``settle_s``)."""
+        every = self.settings.reconcile_interval_s or None
         while not self._stop.is_set():
-            event = self._events.get()
+            try:
+                event = self._events.get(timeout=every)
+            except queue.Empty:  # a quiet interval: membership first, then replicas
+                self._reconcile_round()
+                continue
             if event is None:
                 return
             events = [event]
@@ -202,7 +220,10 @@ class Cluster:
         return self._view
 
     def _pending(self, index: TileIndex) -> bool:
-        """Owned now, not before the transition under way, and not installed yet."""
+        """Owned now, not before the transition under way, and not installed yet; or being
+        reconciled with its primary."""
+        if index in self._reconciling:
+            return True
         prev = self._prev
         return prev is not None and index not in self._installed and \
             not prev.owns(self.me, index)
@@ -245,7 +266,26 @@ class Cluster:
                         continue  # the copy we pulled holds it already
                     del skip[job.key]
                 out.append(index)
+            for index in out:  # on their way to the fuse until the job is done
+                self._inflight[index] = self._inflight.get(index, 0) + 1
+        if out:
+            report = job.done
+
+            def done(touched: list[TileIndex], error: BaseException | None) -> None:
+                self._landed(out)
+                report(touched, error)
+            job.done = done
         return frozenset(out)
+
+    def _landed(self, indices: list[TileIndex]) -> None:
+        with self._flight:
+            for index in indices:
+                left = self._inflight.get(index, 0) - 1
+                if left > 0:
+                    self._inflight[index] = left
+                else:
+                    self._inflight.pop(index, None)
+            self._flight.notify_all()
 
     def _keep(self, index: TileIndex, job: FuseJob) -> None:
         kept = self._journal.setdefault(index, [])
@@ -354,6 +394,72 @@ class Cluster:
         self.stats.count("cluster_isms_replayed", len(keep))
         return copied
 
+    # -- reconciliation with the primary (module docstring) ---------------------------------
+    def _reconcile_round(self) -> None:
+        view = self._view
+        if view is None or self._busy or self.settings.replicas < 2 or len(view.members) < 2:
+            return
+        for tile in self.tiled.resident():
+            index = tile.index
+            if self._stop.is_set() or not self._events.empty():
+                return  # a membership change first
+            version, seen = tile.version, self._seen.get(index)
+            self._seen[index] = version
+            if version != seen or version == self._checked.get(index):
+                continue  # still changing, or confirmed since its last change
+            primary = view.primary(index)
+            if primary is None or primary == self.me or not view.owns(self.me, index):
+                continue
+            try:
+                self._reconcile(index, primary)
+            except Exception:
+                log.exception("cluster: reconciling tile %s failed", index)
+        for index in list(self._seen):
+            if index not in self.tiled.tiles:
+                self._seen.pop(index, None)
+                self._checked.pop(index, None)
+
+    def _reconcile(self, index: TileIndex, primary: str) -> None:
+        """Compare tile ``index`` with its primary's copy and adopt that when they differ."""
+        with self._gate:
+            self._reconciling.add(index)  # from now on its ISMs wait in the journal
+        got: _Pulled | None = None
+        try:
+            with self._flight:
+                landed = self._flight.wait_for(lambda: not self._inflight.get(index),
+                                               self.settings.handover_timeout_s)
+            if not landed:
+                self.stats.count("cluster_reconcile_deferred")
+                return
+            digest = self._local_digest(index)
+            got = self._first(self._ask(index, digest, self.settings.handover_timeout_s),
+                              only=primary)
+            self.stats.count("cluster_reconcile_checked")
+        finally:
+            self._finish_reconcile(index, got)
+
+    def _finish_reconcile(self, index: TileIndex, got: _Pulled | None) -> None:
+        """Install the primary's copy (if it differs) and fuse what was journaled meanwhile."""
+        with self._gate:
+            applied: dict[str, Mark] = {}
+            if got is not None and got.status == "tile" and got.blob is not None:
+                tile = tile_from_bytes(got.blob, self.expect)
+                h = tile.header
+                applied = got.applied
+                self.tiled.insert_tile(index, list(h.layers), np.array(tile.data), h.stamp,
+                                       saved=False, applied=applied)
+                self.stats.count("cluster_tiles_reconciled")
+            keep, skip = replay_plan(self._journal.pop(index, []), applied)
+            for job in keep:
+                self.tiled.fuse(job.layer, job.increments, job.geometry, job.interp, job.stamp,
+                                lambda i: i == index, (job.key, (job.stamp, job.digest)))
+            if skip:
+                self._skip[index] = skip
+            self._reconciling.discard(index)
+            current = self.tiled.tiles.get(index)
+            if current is not None and got is not None and got.status in ("same", "tile"):
+                self._checked[index] = self._seen[index] = current.version
+
     def _local_digest(self, index: TileIndex) -> str | None:
         if index not in self.tiled.known_tiles():
             return None
@@ -375,10 +481,13 @@ class Cluster:
                                  allowed_destination=zenoh.Locality.REMOTE,
                                  payload=body, timeout=timeout)
 
-    def _first(self, replies: Iterable[zenoh.Reply]) -> _Pulled | None:
-        """The first valid owner's answer (every owner holds the same state)."""
+    def _first(self, replies: Iterable[zenoh.Reply], only: str | None = None) -> _Pulled | None:
+        """The first valid owner's answer (every owner holds the same state), or ``only``'s."""
         for reply in replies:
             if reply.ok is None:
+                continue
+            if only is not None and (reply.replier_id is None
+                                     or str(reply.replier_id.zid) != only):
                 continue
             try:
                 got = msgpack.unpackb(reply.ok.payload.to_bytes())

@@ -150,6 +150,9 @@ class ClusterSettings(_Section):
     handover_timeout_s: Annotated[float, Field(gt=0, le=600)] = 10.0  # one tile's pull
     journal_limit: Annotated[int, Field(ge=1, le=1000000)] = 4096  # ISMs held per handover
     settle_s: Annotated[float, Field(ge=0, le=60)] = 0.2  # membership changes batched this long
+    # A replica compares each tile that changed and then stayed quiet this long with its
+    # primary's and adopts the primary's copy when they differ (0: never).
+    reconcile_interval_s: Annotated[float, Field(ge=0, le=3600)] = 2.0
 
 
 class ZenohSettings(_Section):
