@@ -49,6 +49,11 @@ def registry() -> list[Benchmark]:
 
         return cluster(quick)
 
+    def split(quick: bool) -> Row:
+        from sogm_service.bench.cluster import cluster_split
+
+        return cluster_split(quick)
+
     def gathered(quick: bool) -> Row:
         from sogm_service.bench.cluster import cluster_submap
 
@@ -67,6 +72,8 @@ def registry() -> list[Benchmark]:
                   mixed),
         Benchmark("cluster", "ingestion with 2 cluster members vs 1 (replicas 1)",
                   clustered),
+        Benchmark("cluster_split", "bytes per ISM: every member gets it whole vs a split "
+                  "per tile to each tile's owners", split),
         Benchmark("cluster_submap", "sub-map through a member owning none of its tiles vs "
                   "through their owner", gathered),
         Benchmark("sevds", "SEVDS 256x256x3 vs OpenCV SEEDS", compute.sevds),

@@ -11,8 +11,11 @@
 
 from __future__ import annotations
 
+import math
 import tempfile
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +25,14 @@ from sogm_service.bench import transport
 from sogm_service.bench.compute import synthetic_ism
 from sogm_service.bench.core import Row, median, percentile
 from sogm_service.bench.zbench import PY, WINDOW, Proc
-from sogm_service.core.geometry import Pose2D
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 from sogm_service.core.rendezvous import owners_of
 from sogm_service.service.client import MapClient
+from sogm_service.service.pipeline import ism_geometry
 from sogm_service.service.session import open_session, wait_listening
+from sogm_service.wire import codec
 from sogm_service.wire.keys import MapKeys
+from sogm_service.wire.messages import IsmMessage, PoseModel
 
 RES = 0.05
 
@@ -214,3 +220,86 @@ def _served(client: MapClient) -> int:
             got = msgpack.unpackb(reply.ok.payload.to_bytes())
             total += int(got["counters"].get("cluster_tiles_served", 0))
     return total
+
+
+# -- cluster_split: the alternative to sending every ISM to every member ------------------------
+def _parts(geom: GridGeometry, lattice: TileLattice) -> list[tuple[int, int, int, int]]:
+    """The ISM-grid rectangles ``(u0, v0, u1, v1)`` (inclusive) holding every cell that
+    overlaps each tile the ISM touches: what a per-tile split would send to that tile's
+    owners (a rotated ISM's rectangles overlap)."""
+    to_cell = geom.world_to_cell()
+    span = lattice.span
+    out = []
+    for i, j in lattice.tiles_overlapping(geom):
+        xs = np.array([i, i + 1, i + 1, i]) * span
+        ys = np.array([j, j, j + 1, j + 1]) * span
+        u = to_cell[0, 0] * xs + to_cell[0, 1] * ys + to_cell[0, 2]
+        v = to_cell[1, 0] * xs + to_cell[1, 1] * ys + to_cell[1, 2]
+        u0, u1 = max(0, math.ceil(u.min() - 0.5)), min(geom.width - 1, math.floor(u.max() + 0.5))
+        v0, v1 = max(0, math.ceil(v.min() - 0.5)), min(geom.height - 1,
+                                                      math.floor(v.max() + 0.5))
+        if u0 <= u1 and v0 <= v1:
+            out.append((u0, v0, u1, v1))
+    return out
+
+
+def _split_encoded(msg: IsmMessage, parts: list[tuple[int, int, int, int]]) -> list[bytes]:
+    """Each part as an ISM of its own (same resolution and heading, origin moved)."""
+    grid = msg.array()
+    c, s, r = math.cos(msg.origin.yaw), math.sin(msg.origin.yaw), msg.resolution
+    out = []
+    for u0, v0, u1, v1 in parts:
+        ox = msg.origin.x + c * u0 * r - s * v0 * r
+        oy = msg.origin.y + s * u0 * r + c * v0 * r
+        piece = np.ascontiguousarray(grid[v0:v1 + 1, u0:u1 + 1])
+        out.append(codec.encode(msg.model_copy(update={
+            "origin": PoseModel(x=ox, y=oy, yaw=msg.origin.yaw), "width": piece.shape[1],
+            "height": piece.shape[0], "data": piece.tobytes()})))
+    return out
+
+
+def cluster_split(quick: bool) -> Row:
+    """Bytes on the network per ISM: every member receives it whole (what the service does)
+    against a split per tile sent to each tile's ``replicas`` owners only; and the
+    publisher's CPU to split and encode against encoding it whole."""
+    from sogm_service.bench.compute import ism_message
+
+    count, replicas = (60 if quick else 400), 2
+    rng = np.random.default_rng(3)
+    lattice = TileLattice(RES, 256)
+    msgs = []
+    for k in range(count):
+        x, y = (float(v) for v in rng.uniform(0.0, 100.0, 2))
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        msgs.append(ism_message(synthetic_ism(256, k % 4), RES, Pose2D(x, y, yaw)))
+    whole = [float(len(codec.encode(m))) for m in msgs]
+    parts = [_parts(ism_geometry(m), lattice) for m in msgs]
+    split = [float(sum(len(b) for b in _split_encoded(m, p)))
+             for m, p in zip(msgs, parts, strict=True)]
+    t_whole = median([_timed_call(partial(codec.encode, m)) for m in msgs])
+    t_split = median([_timed_call(partial(_split_encoded, m, p))
+                      for m, p in zip(msgs, parts, strict=True)])
+    n_parts = median([float(len(p)) for p in parts])
+    per_ism = {n: (n * median(whole), min(n, replicas) * median(split)) for n in (2, 3, 4, 8)}
+    ours, base = per_ism[4][1], per_ism[4][0]
+    return Row("cluster_split_bytes", ours / 1e3, base / 1e3, "kB/ISM", ours / base, "report",
+               None, "every one of 4 members receives the whole ISM (the service today)",
+               f"{count} 256x256 prob_u8 ISMs at any heading; split per 256-cell tile into the "
+               f"ISM-grid rectangles over each tile ({n_parts:.0f} "
+               f"parts, {median(split) / median(whole):.2f}x the ISM's bytes), each sent to "
+               f"its {replicas} owners; " + ", ".join(
+                   f"{n} members: {b / 1e3:.0f} vs {w / 1e3:.0f} kB" for n, (w, b) in
+                   per_ism.items()) + f"; publisher CPU to split and encode "
+               f"{t_split * 1e3:.3f} ms vs {t_whole * 1e3:.3f} ms to encode whole",
+               {"whole_bytes": float(median(whole)), "split_bytes": float(median(split)),
+                "parts": n_parts,
+                "split_encode_ms": t_split * 1e3, "whole_encode_ms": t_whole * 1e3})
+
+
+def _timed_call(f: Callable[[], object], repeats: int = 5) -> float:
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f()
+        best = min(best, time.perf_counter() - t0)
+    return best

@@ -233,6 +233,17 @@ class Cluster:
         view = self._view
         return view is not None and view.owns(self.me, index) and not self._pending(index)
 
+    def owns_none(self, box: tuple[int, int, int, int]) -> bool:
+        """Whether this member owns (or is taking over) none of the tiles of ``box``
+        (``i0, j0, i1, j1``, inclusive): an ISM there is other members' to fuse.  Before the
+        first view, every tile may be ours."""
+        view = self._view
+        if view is None:
+            return False
+        i0, j0, i1, j1 = box
+        return not any(view.owns(self.me, (i, j))
+                       for j in range(j0, j1 + 1) for i in range(i0, i1 + 1))
+
     def announces(self, index: TileIndex) -> bool:
         """Whether this member publishes the tile events of ``index``: its primary owner
         only, so a fleet hears each tile switch once however many members track the robots

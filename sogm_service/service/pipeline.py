@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
@@ -137,6 +138,9 @@ class IngestPipeline:
         self.admission.store_backlog = tiles.writer_full
         # What became of each ISM, for its publisher (service/acks.py); set by the server.
         self.outcomes: IsmOutcomes | None = None
+        # A cluster member: whether it owns none of the tiles of a footprint's box (then the
+        # ISM is another member's to fuse: no increments, no fuse).  Set by the server.
+        self.owns_none: Callable[[tuple[int, int, int, int]], bool] | None = None
 
     def handle(self, item: IsmItem) -> None:
         """Decode, validate, prepare, check and align one ISM, then hand it to the fuse
@@ -144,6 +148,8 @@ class IngestPipeline:
         started = time.perf_counter()
         try:
             msg = self.decode(item)
+            if self.owns_none is not None and self._elsewhere(item, msg):
+                return
             ism = self.prepare(item, msg)
             reserved = self.admission.check_ism(msg, ism.layer, msg.robot, self.tiled,
                                                 self.fleet)
@@ -170,6 +176,24 @@ class IngestPipeline:
         except BaseException:
             self.admission.release(reserved)
             raise
+
+    def _elsewhere(self, item: IsmItem, msg: IsmMessage) -> bool:
+        """A cluster member that owns none of the ISM's tiles only checks its header and
+        follows its robot: the increments and the fuse are other members' work."""
+        assert self.owns_none is not None
+        if not self.owns_none(self.admission.footprint(msg).tiles):
+            return False
+        source = self.config.ism[item.source]
+        if item.msg is not None:  # decoded by its adapter
+            check_robot(msg.robot, item.robot or msg.robot or "")
+        else:
+            check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
+        x, y = ism_geometry(msg).centre()
+        self.fleet.ism_centre(msg.robot, x, y, msg.stamp)
+        self.stats.count("cluster_isms_elsewhere")
+        self.stats.fused()  # handled: fused by the members that own its tiles
+        self.report(item, None, "fused")
+        return True
 
     def decode(self, item: IsmItem) -> IsmMessage:
         if item.msg is not None:  # decoded and validated by its adapter

@@ -91,6 +91,7 @@ class MapServer:
         if config.cluster.enabled:
             self.cluster = Cluster(config, self.map, self.tiles, self.stats, self.fusers,
                                    lambda t: self.wait_idle(t) and self.fusers.drain(t))
+            self.pipeline.owns_none = self.cluster.owns_none
         self.outcomes = IsmOutcomes(self.keys, [s.key_expr for s in config.ism])
         self.pipeline.outcomes = self.outcomes
         self.warmed_up = threading.Event()  # the SEVDS kernels are compiled or loaded
