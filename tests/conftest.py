@@ -44,6 +44,14 @@ class ServerProcess:
     def log(self) -> str:
         return self.log_path.read_text(encoding="utf-8", errors="replace")
 
+    @property
+    def server_id(self) -> str:
+        """Its Zenoh id, from serve's start line (``serving map 'm' as <id> on ...``)."""
+        for line in self.log().splitlines():
+            if "serving map" in line and " as " in line:
+                return line.split(" as ", 1)[1].split()[0].rstrip(";")
+        raise RuntimeError(f"no start line in {self.log_path}")
+
 
 def toml_value(v: Any) -> str:
     if isinstance(v, bool):

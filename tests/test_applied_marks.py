@@ -407,6 +407,7 @@ def test_a_joiner_pulling_evicted_tiles_equals_a_single_server(
     fleet = cl.Fleet(a.endpoint, seed=23)
     observer = MapClient.connect(a.endpoint, timeout=5.0)
     try:
+        assert wait_until(lambda: fleet.linked(a, ref), 30)
         fleet.publish(4)
         assert wait_until(lambda: cl._all_fused(observer, fleet.sent, 1), 60)
         assert observer.stats().counters.get("tiles_evicted", 0) > 0
