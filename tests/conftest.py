@@ -160,3 +160,14 @@ def wait_processed(client: MapClient, n: int, timeout: float = 15.0) -> dict[str
 
     wait_until(done, timeout)
     return counters
+
+
+@pytest.fixture
+def procs() -> Iterator[list[ServerProcess]]:
+    """Server processes a test starts; any still running at its end is killed (ours, by pid)."""
+    started: list[ServerProcess] = []
+    yield started
+    for p in started:
+        if p.proc.poll() is None:
+            p.proc.kill()
+            p.proc.wait(10)

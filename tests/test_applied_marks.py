@@ -367,16 +367,6 @@ def test_the_replay_plan_with_stored_marks_neither_loses_nor_repeats(tmp_path: P
 
 
 # -- two member processes -------------------------------------------------------------------
-@pytest.fixture
-def procs() -> Iterator[list[ServerProcess]]:
-    started: list[ServerProcess] = []
-    yield started
-    for p in started:
-        if p.proc.poll() is None:
-            p.proc.kill()  # ours, by pid
-            p.proc.wait(10)
-
-
 def _small_member(tmp_path: Path, name: str, peers: list[ServerProcess],
                   servers: int) -> ServerProcess:
     """A cluster member (tile size and resolution of test_cluster) whose memory budget holds

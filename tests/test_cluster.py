@@ -10,7 +10,6 @@ for bit whatever order the members received the robots' ISMs in.
 from __future__ import annotations
 
 import signal
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -121,16 +120,6 @@ def _reference(tmp_path: Path, peers: list[ServerProcess]) -> ServerProcess:
         "zenoh": {"listen": [free_tcp_endpoint()], "connect": [p.endpoint for p in peers]},
     }
     return start_server(tmp_path, sections, name="ref")
-
-
-@pytest.fixture
-def procs() -> Iterator[list[ServerProcess]]:
-    started: list[ServerProcess] = []
-    yield started
-    for p in started:
-        if p.proc.poll() is None:
-            p.proc.kill()  # ours, by pid
-            p.proc.wait(10)
 
 
 class Fleet:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 import tempfile
 import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,7 @@ import numpy as np
 
 from sogm_service.bench import transport
 from sogm_service.bench.compute import synthetic_ism
-from sogm_service.bench.core import Row, median, percentile
+from sogm_service.bench.core import Row, best_time, median, percentile
 from sogm_service.bench.zbench import PY, WINDOW, Proc
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 from sogm_service.core.rendezvous import owners_of
@@ -276,8 +275,8 @@ def cluster_split(quick: bool) -> Row:
     parts = [_parts(ism_geometry(m), lattice) for m in msgs]
     split = [float(sum(len(b) for b in _split_encoded(m, p)))
              for m, p in zip(msgs, parts, strict=True)]
-    t_whole = median([_timed_call(partial(codec.encode, m)) for m in msgs])
-    t_split = median([_timed_call(partial(_split_encoded, m, p))
+    t_whole = median([best_time(partial(codec.encode, m)) for m in msgs])
+    t_split = median([best_time(partial(_split_encoded, m, p))
                       for m, p in zip(msgs, parts, strict=True)])
     n_parts = median([float(len(p)) for p in parts])
     per_ism = {n: (n * median(whole), min(n, replicas) * median(split)) for n in (2, 3, 4, 8)}
@@ -295,11 +294,3 @@ def cluster_split(quick: bool) -> Row:
                 "parts": n_parts,
                 "split_encode_ms": t_split * 1e3, "whole_encode_ms": t_whole * 1e3})
 
-
-def _timed_call(f: Callable[[], object], repeats: int = 5) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f()
-        best = min(best, time.perf_counter() - t0)
-    return best

@@ -57,6 +57,11 @@ def time_once(fn: Callable[[], object]) -> float:
     return time.perf_counter() - t0
 
 
+def best_time(fn: Callable[[], object], repeats: int = 5) -> float:
+    """The fastest of ``repeats`` calls, in seconds (a bound's cost without the noise)."""
+    return min(time_once(fn) for _ in range(repeats))
+
+
 def interleaved(ours: Callable[[], object], base: Callable[[], object], repeats: int,
                 warmup: int = 2) -> tuple[list[float], list[float]]:
     """Seconds per call of both, alternating, so that load changes hit both alike."""

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Callable
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from sogm_service.bench.core import best_time
 from sogm_service.core.sevds import SevdsParams, sevds
 
 
@@ -36,15 +35,6 @@ def seeds_histogram_bytes(height: int, width: int, layers: int, bins: int, level
         size = max(1, block >> (levels - 1 - level))
         total += -(-height // size) * -(-width // size)
     return total * bins**layers * 4
-
-
-def _best_time(fn: Callable[[], object], repeats: int) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def _seeds_run(img: npt.NDArray[np.uint8], count: int, levels: int, bins: int,
@@ -77,7 +67,7 @@ def benchmark_sevds_vs_seeds(
     for n in layers:
         stack = synthetic_stack(n, height, width, seed)
         sevds(stack, p)  # warm-up: numba compile / cache load
-        sevds_s = _best_time(lambda s=stack: sevds(s, p), repeats)  # type: ignore[misc]
+        sevds_s = best_time(lambda s=stack: sevds(s, p), repeats)  # type: ignore[misc]
         count = sevds(stack, p).count
         row: dict[str, float | int | str | None] = {
             "layers": n, "height": height, "width": width, "supercells": count,
@@ -89,7 +79,7 @@ def benchmark_sevds_vs_seeds(
         else:
             img = np.ascontiguousarray(np.rint(stack.transpose(1, 2, 0) * 255).astype(np.uint8))
             row["seeds_superpixels"] = _seeds_run(img, count, p.levels, p.bins, p.iterations)
-            seeds_s = _best_time(
+            seeds_s = best_time(
                 lambda i=img, c=count: _seeds_run(  # type: ignore[misc]
                     i, c, p.levels, p.bins, p.iterations), repeats)
             row["seeds_s"] = seeds_s
