@@ -102,9 +102,9 @@ def test_replay_plan_neither_loses_nor_repeats() -> None:
 # -- processes ------------------------------------------------------------------------------
 def _member(tmp_path: Path, name: str, peers: list[ServerProcess], servers: int,
             endpoint: str | None = None, store: str | None = None,
-            **cluster: Any) -> ServerProcess:
+            forget: dict[str, float] | None = None, **cluster: Any) -> ServerProcess:
     sections: dict[str, dict[str, Any]] = {
-        "map": {"resolution": RES, "tile_size": TILE},
+        "map": {"resolution": RES, "tile_size": TILE, **({"forget": forget} if forget else {})},
         "cluster": {"enabled": True, "replicas": 2, "fetch_cache_s": 0.0, **cluster},
         "storage": {"directory": str(tmp_path / f"store-{store or name}"),
                     "checkpoint_interval_s": 0.5},
@@ -438,5 +438,33 @@ def test_replicas_that_diverge_converge_to_their_primary(tmp_path: Path,
             _member_submap(observer, ids[0]), _member_submap(observer, ids[1])), 30)
     finally:
         lone.close()
+        observer.close()
+        fleet.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_decaying_layer_reads_alike_through_either_member(tmp_path: Path,
+                                                            procs: list[ServerProcess]) -> None:
+    """replicas = 1, a forgetting layer: a member reading tiles it fetched from their owner
+    decays them to the same time, from the same stamps, as the owner does (a fetched tile
+    carries its stamp and decay stamps; every member's clock follows every ISM)."""
+    forget = {"r*/laser/obstacle": 5.0}
+    a = _member(tmp_path, "a", [], 1, forget=forget, replicas=1)
+    procs.append(a)
+    b = _member(tmp_path, "b", [a], 2, forget=forget, replicas=1)
+    procs.append(b)
+    fleet = Fleet(a.endpoint, seed=9)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        assert wait_until(lambda: fleet.linked(a, b), 30)
+        fleet.publish(3)  # stamps 1-3
+        fleet.stamp = 20.0
+        fleet.publish(1)  # stamp 21: the older cells have decayed by ~2^-3.6 since
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 2), 60)
+        ids = sorted(_member_stats(observer))
+        first, second = (_member_submap(observer, i) for i in ids)
+        assert np.abs(first).sum() > 0
+        assert np.array_equal(first, second)
+    finally:
         observer.close()
         fleet.close()

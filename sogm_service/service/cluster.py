@@ -56,6 +56,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
+from sogm_service.core.geodesy import LocalTangentPlane
 from sogm_service.core.rendezvous import Ownership
 from sogm_service.core.tiles import Mark, Tile, TiledMap, planes_of
 from sogm_service.core.tiletypes import TileIndex
@@ -65,7 +66,13 @@ from sogm_service.service.fusers import FuseJob, FuseWorkers
 from sogm_service.service.gathered import GatheredMap
 from sogm_service.service.handover import content_digest, replay_plan
 from sogm_service.service.stats import Stats
-from sogm_service.store.format import Expectation, tile_from_bytes, tile_header, tile_to_bytes
+from sogm_service.store.format import (
+    Expectation,
+    TileHeader,
+    tile_from_bytes,
+    tile_header,
+    tile_to_bytes,
+)
 from sogm_service.wire.errors import ConfigError, QueryError, TileFormatError
 from sogm_service.wire.keys import last_chunk
 
@@ -99,6 +106,8 @@ class Cluster:
         self._settle = settle
         m = config.map
         self.expect = Expectation(m.name, float(m.resolution), int(m.tile_size), m.frame)
+        # Tile files carry the geodetic origin and the decay stamps, as the store's do.
+        self._plane = None if m.datum is None else LocalTangentPlane(m.datum)
         self.me = ""
         self._gate = threading.RLock()  # ingestion's scope vs installing a pulled tile
         self._view: Ownership | None = None
@@ -377,7 +386,7 @@ class Cluster:
                     tile = tile_from_bytes(got.blob, self.expect)
                     h = tile.header
                     self.tiled.insert_tile(index, list(h.layers), np.array(tile.data), h.stamp,
-                                           saved=False, applied=applied)
+                                           saved=False, decay=dict(h.decay), applied=applied)
                     copied = 1
                 elif got.status == "same":
                     resident = self.tiled.get_tile(index)
@@ -458,7 +467,7 @@ class Cluster:
                 h = tile.header
                 applied = got.applied
                 self.tiled.insert_tile(index, list(h.layers), np.array(tile.data), h.stamp,
-                                       saved=False, applied=applied)
+                                       saved=False, decay=dict(h.decay), applied=applied)
                 self.stats.count("cluster_tiles_reconciled")
             keep, skip = replay_plan(self._journal.pop(index, []), applied)
             for job in keep:
@@ -573,7 +582,7 @@ class Cluster:
         if digest is not None and digest == content_digest(snap.layers, snap.data):
             return msgpack.packb({"status": "same", "applied": applied})
         header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
-                             applied=snap.applied)
+                             self._plane, snap.decay, snap.applied)
         return msgpack.packb({"status": "tile", "applied": applied,
                               "blob": tile_to_bytes(header, snap.data)})
 
@@ -607,7 +616,7 @@ class Cluster:
                 except TileFormatError as exc:
                     raise QueryError("no_owner", f"tile {index} came back damaged: "
                                                  f"{exc.reason}", "x") from None
-                tile = self._as_tile(index, list(stored.header.layers), stored.data)
+                tile = self._as_tile(index, stored.header, stored.data)
             out[index] = tile
             self.stats.count("cluster_tiles_fetched")
         if self.settings.fetch_cache_s > 0 and self.settings.fetch_cache_tiles > 0 and missing:
@@ -619,10 +628,14 @@ class Cluster:
                     self._cache.pop(next(iter(self._cache)))
         return out
 
-    def _as_tile(self, index: TileIndex, names: list[str],
+    def _as_tile(self, index: TileIndex, header: TileHeader,
                  stack: npt.NDArray[np.int16]) -> Tile:
-        """A fetched tile in this map's layer order (read-only use)."""
-        return Tile(index, planes_of(self.tiled.adopt_layers(names), stack))
+        """A fetched tile in this map's layer order (read-only use), with its stamp and decay
+        stamps: a decaying layer reads as decayed to the query's time, as the owner's does."""
+        ids = self.tiled.adopt_layers(list(header.layers))
+        by_name = dict(zip(header.layers, ids, strict=True))
+        return Tile(index, planes_of(ids, stack), stamp=header.stamp,
+                    decay={by_name[name]: t for name, t in header.decay})
 
     def query_map(self) -> TiledMap:
         """The map a window query reads: this member's tiles and its owners' for the rest."""

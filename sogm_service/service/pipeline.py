@@ -190,6 +190,7 @@ class IngestPipeline:
             check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
         x, y = ism_geometry(msg).centre()
         self.fleet.ism_centre(msg.robot, x, y, msg.stamp)
+        self.tiled.advance_clock(msg.stamp)  # decaying layers read alike on every member
         self.stats.count("cluster_isms_elsewhere")
         self.stats.fused()  # handled: fused by the members that own its tiles
         self.report(item, None, "fused")
