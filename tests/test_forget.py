@@ -315,7 +315,7 @@ def test_server_forgets_by_stamps_and_across_a_restart(tmp_path: Path) -> None:
     from sogm_service.service.client import MapClient
     from tests.conftest import start_server, wait_processed
 
-    sections = {"map": {"resolution": 0.5, "tile_size": 16, "forget": {'"*/people"': H}},
+    sections = {"map": {"resolution": 0.5, "tile_size": 16, "forget": {"*/people": H}},
                 "storage": {"directory": str(tmp_path / "tiles")}}
     occ = np.full((1, 1), 80, dtype=np.int8)  # occupancy_i8 80 -> logit(0.8) = 1386
     l_occ = round(1000 * math.log(0.8 / 0.2))
