@@ -73,3 +73,12 @@ def test_bad_flags_are_refused_in_one_line(tmp_path: Path) -> None:
     code, out, _ = _bench(tmp_path, "submap", "--secure", "--zenoh-config",
                           str(tmp_path / "x.json5"))
     assert code == 2 and "not both" in out
+
+
+def test_the_cluster_rows_run_under_the_access_control(tmp_path: Path) -> None:
+    """A robot may ask one cluster member by its key (``member/<id>/submap``): the row that
+    compares a non-owner with the owner runs through the dev PKI's access control."""
+    code, out, report = _bench(tmp_path, "cluster_submap", "--secure")
+    assert code == 0, out
+    (row,) = report["rows"]
+    assert row["details"]["tiles_served"] > 0, row

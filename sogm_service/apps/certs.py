@@ -71,13 +71,16 @@ from sogm_service.apps.pki import (
     write_cert,
     write_key,
 )
+from sogm_service.wire.keys import QUERYABLES
 
 # --------------------------------------------------------------------------- access control
 
 def access_control(pki: Pki) -> dict[str, Any]:
     """The ``access_control`` section for the node everyone connects to (see module doc)."""
     base = f"{pki.prefix.strip('/')}/{pki.map_name}"
-    reads = [f"{base}/{q}" for q in READ_QUERIES]
+    # The read queries, also as asked of one cluster member (``member/<id>/<name>``).
+    reads = [f"{base}/{q}" for q in READ_QUERIES] + \
+        [f"{base}/member/*/{q}" for q in QUERYABLES]
     events = f"{base}/events/**"
     servers_token = f"{base}/@server/*"
     rules: list[dict[str, Any]] = []
