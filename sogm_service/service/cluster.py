@@ -56,7 +56,6 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from sogm_service.core.geodesy import LocalTangentPlane
 from sogm_service.core.rendezvous import Ownership
 from sogm_service.core.tiles import Mark, Tile, TiledMap, planes_of
 from sogm_service.core.tiletypes import TileIndex
@@ -65,13 +64,11 @@ from sogm_service.service.config import ServiceConfig
 from sogm_service.service.fusers import FuseJob, FuseWorkers
 from sogm_service.service.gathered import GatheredMap
 from sogm_service.service.handover import content_digest, replay_plan
+from sogm_service.service.replication import TileFiles
 from sogm_service.service.stats import Stats
 from sogm_service.store.format import (
-    Expectation,
     TileHeader,
     tile_from_bytes,
-    tile_header,
-    tile_to_bytes,
 )
 from sogm_service.wire.errors import ConfigError, QueryError, TileFormatError
 from sogm_service.wire.keys import last_chunk
@@ -104,10 +101,7 @@ class Cluster:
         self.stats = stats
         self.fusers = fusers
         self._settle = settle
-        m = config.map
-        self.expect = Expectation(m.name, float(m.resolution), int(m.tile_size), m.frame)
-        # Tile files carry the geodetic origin and the decay stamps, as the store's do.
-        self._plane = None if m.datum is None else LocalTangentPlane(m.datum)
+        self.files = TileFiles.of(config.map)
         self.me = ""
         self._gate = threading.RLock()  # ingestion's scope vs installing a pulled tile
         self._view: Ownership | None = None
@@ -383,11 +377,9 @@ class Cluster:
             if got is not None:
                 applied = got.applied
                 if got.status == "tile" and got.blob is not None:
-                    tile = tile_from_bytes(got.blob, self.expect)
-                    h = tile.header
-                    self.tiled.insert_tile(index, list(h.layers), np.array(tile.data), h.stamp,
-                                           saved=False, decay=dict(h.decay), applied=applied)
-                    copied = 1
+                    copied = int(self._install(index, got.blob, applied))
+                    if not copied:  # refused: our journal is replayed whole on ours
+                        applied = {}
                 elif got.status == "same":
                     resident = self.tiled.get_tile(index)
                     if resident is not None:
@@ -462,12 +454,9 @@ class Cluster:
         """Install the primary's copy (if it differs) and fuse what was journaled meanwhile."""
         with self._gate:
             applied: dict[str, Mark] = {}
-            if got is not None and got.status == "tile" and got.blob is not None:
-                tile = tile_from_bytes(got.blob, self.expect)
-                h = tile.header
+            if got is not None and got.status == "tile" and got.blob is not None and \
+                    self._install(index, got.blob, got.applied):
                 applied = got.applied
-                self.tiled.insert_tile(index, list(h.layers), np.array(tile.data), h.stamp,
-                                       saved=False, decay=dict(h.decay), applied=applied)
                 self.stats.count("cluster_tiles_reconciled")
             keep, skip = replay_plan(self._journal.pop(index, []), applied)
             for job in keep:
@@ -479,6 +468,17 @@ class Cluster:
             current = self.tiled.tiles.get(index)
             if current is not None and got is not None and got.status in ("same", "tile"):
                 self._checked[index] = self._seen[index] = current.version
+
+    def _install(self, index: TileIndex, blob: bytes, applied: dict[str, Mark]) -> bool:
+        """A pulled copy in place of ours; a damaged one is counted and ours kept (the
+        journal is replayed either way)."""
+        try:
+            self.files.install(self.tiled, blob, index, applied)
+        except TileFormatError as exc:
+            self.stats.count("cluster_bad_replies")
+            log.warning("cluster: a copy of tile %s was refused: %s", index, exc.reason)
+            return False
+        return True
 
     def _local_digest(self, index: TileIndex) -> str | None:
         if index not in self.tiled.known_tiles():
@@ -581,10 +581,8 @@ class Cluster:
         applied = [[k, [v[0], v[1]]] for k, v in snap.applied.items()]
         if digest is not None and digest == content_digest(snap.layers, snap.data):
             return msgpack.packb({"status": "same", "applied": applied})
-        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
-                             self._plane, snap.decay, snap.applied)
         return msgpack.packb({"status": "tile", "applied": applied,
-                              "blob": tile_to_bytes(header, snap.data)})
+                              "blob": self.files.encode(snap)})
 
     # -- queries: gathering tiles from owners ---------------------------------------------
     def fetch(self, indices: list[TileIndex]) -> dict[TileIndex, Tile | None]:
@@ -612,7 +610,7 @@ class Cluster:
             tile = None
             if got.status == "tile" and got.blob is not None:
                 try:
-                    stored = tile_from_bytes(got.blob, self.expect)
+                    stored = tile_from_bytes(got.blob, self.files.expect)
                 except TileFormatError as exc:
                     raise QueryError("no_owner", f"tile {index} came back damaged: "
                                                  f"{exc.reason}", "x") from None

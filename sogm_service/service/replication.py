@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
-import numpy as np
 import zenoh
 
 from sogm_service.core.geodesy import LocalTangentPlane
-from sogm_service.core.tiles import TiledMap
-from sogm_service.core.tiletypes import TileIndex
+from sogm_service.core.tiles import TiledMap, TileSnapshot
+from sogm_service.core.tiletypes import Mark, TileIndex
 from sogm_service.service.checkpoints import Checkpointer
-from sogm_service.service.config import ServiceConfig
+from sogm_service.service.config import MapSettings, ServiceConfig
 from sogm_service.service.stats import Stats
 from sogm_service.store.format import (
     Expectation,
@@ -32,6 +32,37 @@ from sogm_service.wire.keys import tile_of_key
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class TileFiles:
+    """This map's tiles in the store's file format, as replicas and cluster members send them
+    to each other: stamp, datum, decay stamps and applied marks in the header."""
+
+    expect: Expectation
+    plane: LocalTangentPlane | None
+
+    @classmethod
+    def of(cls, m: MapSettings) -> TileFiles:
+        return cls(Expectation(m.name, float(m.resolution), int(m.tile_size), m.frame),
+                   None if m.datum is None else LocalTangentPlane(m.datum))
+
+    def encode(self, snap: TileSnapshot) -> bytes:
+        header = tile_header(self.expect, snap.index[0], snap.index[1], snap.layers, snap.stamp,
+                             self.plane, snap.decay, snap.applied)
+        return tile_to_bytes(header, snap.data)
+
+    def install(self, tiled: TiledMap, blob: bytes, index: TileIndex,
+                applied: dict[str, Mark] | None = None) -> None:
+        """Put a received tile in place of ours (not stored yet), with its own marks unless
+        ``applied`` is given.  Raises ``TileFormatError`` for a damaged tile or another
+        index than ``index``."""
+        tile = tile_from_bytes(blob, self.expect)
+        h = tile.header
+        if h.index != index:
+            raise TileFormatError(f"a reply for tile {index} holds tile {h.index}")
+        tiled.insert_tile(index, list(h.layers), tile.data, h.stamp, saved=False,
+                          decay=dict(h.decay), applied=marks_of(h) if applied is None else applied)
+
+
 class Replication:
     """Serves this server's tiles and copies a peer's on start."""
 
@@ -42,9 +73,7 @@ class Replication:
         self.tiled = tiled
         self.tiles = tiles
         self.stats = stats
-        m = config.map
-        self.expect = Expectation(m.name, float(m.resolution), int(m.tile_size), m.frame)
-        self._plane = None if m.datum is None else LocalTangentPlane(m.datum)
+        self.files = TileFiles.of(config.map)
 
     def on_tiles(self, q: zenoh.Query) -> None:
         """One reply per requested tile, keyed ``.../tiles/<i>/<j>``, in the store format."""
@@ -65,9 +94,7 @@ class Replication:
         if snap is None:
             store = self.tiles.store
             return store.read_bytes(*index) if store is not None else None
-        header = tile_header(self.expect, index[0], index[1], snap.layers, snap.stamp,
-                             self._plane, snap.decay, snap.applied)
-        return tile_to_bytes(header, snap.data)
+        return self.files.encode(snap)
 
     def replicate(self, session: zenoh.Session, timeout: float = 30.0) -> int:
         """Copy every tile a live server of this map offers on ``tiles/**``.
@@ -85,17 +112,12 @@ class Replication:
             if reply.ok is None:
                 continue
             try:
-                tile = tile_from_bytes(reply.ok.payload.to_bytes(), self.expect)
-                if tile.header.index != tile_of_key(str(reply.ok.key_expr)):
-                    raise TileFormatError(f"the reply on {reply.ok.key_expr} holds tile "
-                                          f"{tile.header.index}")
+                self.files.install(self.tiled, reply.ok.payload.to_bytes(),
+                                   tile_of_key(str(reply.ok.key_expr)))
             except TileFormatError as exc:
                 self.stats.count("replica_tiles_rejected")
                 log.warning("replication: rejected %s: %s", reply.ok.key_expr, exc.reason)
                 continue
-            h = tile.header
-            self.tiled.insert_tile(h.index, list(h.layers), np.array(tile.data), h.stamp,
-                                   saved=False, decay=dict(h.decay), applied=marks_of(h))
             copied += 1
         self.stats.count("replica_tiles_copied", copied)
         log.info("replication: copied %d tiles from a live server", copied)
