@@ -37,18 +37,23 @@ class NoScansError(ValueError):
     ``limit <= 0``): nothing to replay.  ``str()`` is one line for the user."""
 
 
+def _server_args(p: argparse.ArgumentParser) -> None:
+    """Where the replay goes: an embedded server unless told a running one."""
+    p.add_argument("--connect", default=None,
+                   help="endpoint of a running server (default: an embedded one)")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="Zenoh JSON5 config of a running server's site, honoured as is (e.g. "
+                        "a robot's from 'sogm-service certs'); replaces --connect")
+    p.add_argument("--map", default="default", help="map name of that server")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sogm-service replay", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="format", required=True)
     c = sub.add_parser("carmen",
                        help="a CARMEN log (FLASER or ROBOTLASER1 lines, gzip or plain)")
     c.add_argument("file", type=Path)
-    c.add_argument("--connect", default=None,
-                   help="endpoint of a running server (default: an embedded one)")
-    c.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
-                   help="Zenoh JSON5 config of a running server's site, honoured as is (e.g. "
-                        "a robot's from 'sogm-service certs'); replaces --connect")
-    c.add_argument("--map", default="default", help="map name of that server")
+    _server_args(c)
     c.add_argument("--resolution", type=float, default=0.05, help="ISM and map cell size (m)")
     c.add_argument("--limit", type=int, default=None, help="replay at most this many scans")
     c.add_argument("--speed", type=float, default=0.0,
@@ -63,12 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("rosbag", help="a ROS 1 bag or a ROS 2 bag (sqlite3 or mcap): "
                                       "LaserScan + /tf and OccupancyGrid topics")
     b.add_argument("file", type=Path, help="the bag (a ROS 2 bag is its directory)")
-    b.add_argument("--connect", default=None,
-                   help="endpoint of a running server (default: an embedded one)")
-    b.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
-                   help="Zenoh JSON5 config of a running server's site, honoured as is; "
-                        "replaces --connect")
-    b.add_argument("--map", default="default", help="map name of that server")
+    _server_args(b)
     b.add_argument("--map-frame", default="map", help="the TF frame of the map")
     b.add_argument("--resolution", type=float, default=0.05, help="laser ISM cell size (m)")
     b.add_argument("--robot", default="rosbag", help="robot name of the laser scans")
