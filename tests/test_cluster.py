@@ -343,6 +343,7 @@ def test_no_live_owner_is_a_clear_error(tmp_path: Path, procs: list[ServerProces
         assert len(held) == 2 and all(held.values())
         _each_tile_switch_is_announced_once(observer)
         _each_member_answers_its_own_key(observer)
+        _every_member_refuses_a_bad_header(observer)
         b.proc.send_signal(signal.SIGSTOP)
         try:
             codes = []
@@ -468,3 +469,15 @@ def test_a_decaying_layer_reads_alike_through_either_member(tmp_path: Path,
     finally:
         observer.close()
         fleet.close()
+
+
+def _every_member_refuses_a_bad_header(observer: MapClient) -> None:
+    """A member that owns none of an ISM's tiles still checks its header as the owner does:
+    a bad layer name is refused by both members, not fused by one and refused by the other."""
+    from sogm_service.wire.messages import IsmMessage, PoseModel
+
+    bad = IsmMessage(layer="no spaces allowed", resolution=RES, origin=PoseModel(x=0.5, y=0.5),
+                     width=2, height=2, encoding="prob_u8", data=bytes(4))
+    observer.publish_raw("ism/r1/laser/obstacle", codec.encode(bad))
+    assert wait_until(lambda: sum(s["rejected"].get("bad_layer", 0)
+                                  for s in _member_stats(observer).values()) == 2, 30)

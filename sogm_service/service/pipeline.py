@@ -102,11 +102,15 @@ def ism_geometry(msg: IsmMessage) -> GridGeometry:
                         Pose2D(msg.origin.x, msg.origin.y, msg.origin.yaw))
 
 
-def increments(msg: IsmMessage, frame: str, eps0: float) -> npt.NDArray[np.int16]:
-    """The ISM's fixed log-odds increments, once its frame is checked against the map's."""
+def check_frame(msg: IsmMessage, frame: str) -> None:
     if msg.frame != frame:
         raise IsmRejectedError("wrong_frame",
                                f"ISM frame {msg.frame!r} is not the map frame {frame!r}", "frame")
+
+
+def increments(msg: IsmMessage, frame: str, eps0: float) -> npt.NDArray[np.int16]:
+    """The ISM's fixed log-odds increments, once its frame is checked against the map's."""
+    check_frame(msg, frame)
     return logodds.increments(msg.array(), msg.encoding, eps0)
 
 
@@ -183,11 +187,12 @@ class IngestPipeline:
         assert self.owns_none is not None
         if not self.owns_none(self.admission.footprint(msg).tiles):
             return False
-        source = self.config.ism[item.source]
-        if item.msg is not None:  # decoded by its adapter
-            check_robot(msg.robot, item.robot or msg.robot or "")
-        else:
-            check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
+        # The owners' header checks, so that every member refuses alike (the map-state ones,
+        # layer count and memory, are the owners').
+        self.admission.check_names(self.identify(item, msg), msg.robot)
+        check_frame(msg, self.tiled.frame)
+        if msg.robot:
+            self.fleet.check_robot(msg.robot)
         x, y = ism_geometry(msg).centre()
         self.fleet.ism_centre(msg.robot, x, y, msg.stamp)
         self.tiled.advance_clock(msg.stamp)  # decaying layers read alike on every member
@@ -202,15 +207,18 @@ class IngestPipeline:
         return codec.decode(IsmMessage, item.payload,
                             context={"max_cells": self.config.limits.max_ism_cells})
 
-    def prepare(self, item: IsmItem, msg: IsmMessage) -> PreparedIsm:
+    def identify(self, item: IsmItem, msg: IsmMessage) -> str:
+        """The ISM's layer, once its robot is checked against its key's."""
         source = self.config.ism[item.source]
-        if item.msg is not None:
+        if item.msg is not None:  # decoded by its adapter
             check_robot(msg.robot, item.robot or msg.robot or "")
-            layer = layer_name(msg.model_copy(update={"layer": item.layer or msg.layer}),
-                               item.key, source.key_expr)
-        else:
-            check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
-            layer = layer_name(msg, item.key, source.key_expr)
+            return layer_name(msg.model_copy(update={"layer": item.layer or msg.layer}),
+                              item.key, source.key_expr)
+        check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
+        return layer_name(msg, item.key, source.key_expr)
+
+    def prepare(self, item: IsmItem, msg: IsmMessage) -> PreparedIsm:
+        layer = self.identify(item, msg)
         inc = increments(msg, self.tiled.frame, self.config.map.eps0)
         return PreparedIsm(msg, item.key, item.source, layer, inc, ism_geometry(msg))
 
