@@ -185,6 +185,14 @@ def _all_fused(client: MapClient, n: int, members: int) -> bool:
         for s in stats.values())
 
 
+def _settled(client: MapClient, members: int) -> bool:
+    """Every member sees all ``members`` (no view still missing a newcomer) and is idle."""
+    stats = _member_stats(client)
+    return len(stats) == members and all(
+        len(s["extra"].get("cluster_members", [])) == members
+        and not s["extra"].get("cluster_handover") for s in stats.values())
+
+
 def _copies(held: dict[str, set[tuple[int, int]]]) -> dict[tuple[int, int], int]:
     count: dict[tuple[int, int], int] = {}
     for tiles in held.values():
@@ -458,6 +466,7 @@ def test_a_decaying_layer_reads_alike_through_either_member(tmp_path: Path,
     observer = MapClient.connect(a.endpoint, timeout=5.0)
     try:
         assert wait_until(lambda: fleet.linked(a, b), 30)
+        assert wait_until(lambda: _settled(observer, 2), 30)
         fleet.publish(3)  # stamps 1-3
         fleet.stamp = 20.0
         fleet.publish(1)  # stamp 21: the older cells have decayed by ~2^-3.6 since
@@ -465,7 +474,13 @@ def test_a_decaying_layer_reads_alike_through_either_member(tmp_path: Path,
         ids = sorted(_member_stats(observer))
         first, second = (_member_submap(observer, i) for i in ids)
         assert np.abs(first).sum() > 0
-        assert np.array_equal(first, second)
+        stats = _member_stats(observer)
+        diff = np.argwhere(first != second)[:3].tolist()
+        assert np.array_equal(first, second), (
+            diff, [(int(first[tuple(d)]), int(second[tuple(d)])) for d in diff],
+            {i[:6]: (st["extra"].get("map_time"), [m[:6] for m in st["extra"]["cluster_members"]],
+                     {k: v for k, v in st["counters"].items() if k.startswith("cluster")})
+             for i, st in stats.items()})
     finally:
         observer.close()
         fleet.close()

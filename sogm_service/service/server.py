@@ -21,6 +21,7 @@ Threads and why (DESIGN.md sections 2-4):
 from __future__ import annotations
 
 import logging
+import math
 import subprocess
 import sys
 import threading
@@ -309,6 +310,8 @@ class MapServer:
             "tiles_known": len(self.map.known_tiles()),
             "resident_mb": round(self.map.resident_bytes() / 1e6, 3),
             "reserved_mb": round(self.pipeline.admission.reserved_bytes / 1e6, 3),
+            # The map's clock (the latest ISM stamp): decaying layers read as they are then.
+            "map_time": self.map.now() if math.isfinite(self.map.now()) else None,
             "fuse_workers": self.fusers.workers,
             "kernels_ready": self.warmed_up.is_set(),
         }
