@@ -29,7 +29,7 @@ from sogm_service.core.numba_cache import choose_cache_dir
 from sogm_service.service.config import ConfigError, load_config
 from sogm_service.service.session import free_tcp_endpoint
 from sogm_service.wire.messages import RejectionReport
-from tests.conftest import ServerProcess, start_server, write_config
+from tests.conftest import ServerProcess, start_server, wait_until, write_config
 
 pytestmark = pytest.mark.integration
 
@@ -234,6 +234,9 @@ def test_serve_honours_the_configs_log_level(tmp_path: Path) -> None:
         wait_listening(endpoint, 30, lambda: proc.poll() is not None,
                        lambda: log.read_text(errors="replace"))
         with MapClient.connect(endpoint) as client, pytest.raises(IsmNotFusedError):
+            # Listening is not ready: the ISM subscriber and the ack queryable are declared
+            # later; the server's liveliness token says they are (a busy CI lost the ISM).
+            assert wait_until(lambda: bool(client.servers(timeout=1.0)), 30)
             client.publish_ism("ism/r/x", np.zeros((2, 2), np.uint8), resolution=0.1,
                                frame="odom", wait=True)
     finally:
@@ -242,6 +245,48 @@ def test_serve_honours_the_configs_log_level(tmp_path: Path) -> None:
     text = log.read_text(errors="replace")
     assert "WARNING" in text and "wrong_frame" in text  # the warning is logged...
     assert " INFO " not in text  # ... the info lines are not
+
+
+def test_logging_writes_to_the_stderr_of_the_moment() -> None:
+    """A thread that logs after an in-process ``main()`` returned once hit the closed stream
+    of pytest's capture ("--- Logging error ---" and a call stack in the next test)."""
+    import io
+    import logging
+
+    from sogm_service.apps.logs import setup_logging
+
+    root = logging.getLogger()
+    saved_handlers, saved_level, saved_stderr = root.handlers[:], root.level, sys.stderr
+    first, second = io.StringIO(), io.StringIO()
+    try:
+        sys.stderr = first
+        setup_logging("info")
+        logging.getLogger("sogm.test").info("one")
+        first.close()
+        sys.stderr = second
+        logging.getLogger("sogm.test").info("two")
+        assert "INFO sogm.test: two" in second.getvalue()
+        assert "Logging error" not in second.getvalue()
+    finally:
+        sys.stderr = saved_stderr
+        root.handlers[:] = saved_handlers
+        root.setLevel(saved_level)
+
+
+def test_a_stopped_server_leaves_no_warm_up_child(tmp_path: Path) -> None:
+    import signal
+
+    from sogm_service.service.server import MapServer
+
+    config = load_config(write_config(tmp_path / "s.toml",
+                                      {"zenoh": {"listen": [free_tcp_endpoint()]}}))
+    server = MapServer(config).start()
+    try:
+        assert wait_until(lambda: server._warm_up_child is not None, 10)
+    finally:
+        server.stop()
+    child = server._warm_up_child
+    assert child is not None and child.poll() == -signal.SIGTERM  # ended, not left to run
 
 
 # ------------------------------------------------------------- the Quick start cannot fail

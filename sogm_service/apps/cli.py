@@ -24,6 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sogm_service.apps.logs import setup_logging
 from sogm_service.service.session import DEFAULT_ENDPOINT
 from sogm_service.wire.errors import ClientError, SogmError
 
@@ -394,11 +395,11 @@ def main(argv: list[str] | None = None) -> int:
         if command in _DELEGATED:  # they parse their own options (including -h)
             _, head = _pop_log_options(argv[:at], quiet=("-q", "--quiet"))
             rest, level = _pop_log_options(argv[at + 1:])
-            _setup_logging(level or head or "info")
+            setup_logging(level or head or "info")
             return _DELEGATED[command][0](rest)
         args = build_parser().parse_args(argv)
         level = getattr(args, "log_level", None)
-        _setup_logging(level or "info")
+        setup_logging(level or "info")
         handler = {"serve": _serve, "query": _query, "publish-ism": _publish_ism,
                    "schemas": _schemas, "router": _router}[args.command]
         return handler(args)
@@ -413,11 +414,6 @@ def main(argv: list[str] | None = None) -> int:
 def _one_line(exc: BaseException) -> str:
     text = str(exc).strip() or type(exc).__name__
     return " ".join(text.split()) if len(text) < 2000 else text[:2000]
-
-
-def _setup_logging(level: str) -> None:
-    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
 
 
 def stop_on_signal() -> threading.Event:
@@ -445,7 +441,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)  # ConfigError: one line (with the fields), exit 2
     if getattr(args, "log_level", None) is None:  # the config's level unless told
-        _setup_logging(config.log_level)
+        setup_logging(config.log_level)
     updates: dict[str, Any] = {}
     if args.listen:
         updates["listen"] = args.listen

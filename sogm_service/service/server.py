@@ -96,6 +96,8 @@ class MapServer:
         self.outcomes = IsmOutcomes(self.keys, [s.key_expr for s in config.ism])
         self.pipeline.outcomes = self.outcomes
         self.warmed_up = threading.Event()  # the SEVDS kernels are compiled or loaded
+        self._warm_up_child: subprocess.Popen[str] | None = None
+        self._stopped = threading.Event()
         self._owns_session = session is None
         self._session = session
         self._declared: list[Any] = []
@@ -125,6 +127,10 @@ class MapServer:
                                   self.stats, self.pipeline.rejections)
         self.tiles.start()
         self.outcomes.attach(self._session.put)
+        # Last: the token says "ready", so a client that waits for it finds every subscriber
+        # and queryable declared (the ack queryable once came after it).
+        self._declared.append(
+            self._session.liveliness().declare_token(self.keys.server_token(self.server_id)))
         self._start_warm_up()
         log.info("serving map %r (frame %s, %.3f m) as %s; ISMs on %s", self.config.map.name,
                  self.config.map.frame, self.config.map.resolution, self.server_id,
@@ -164,11 +170,10 @@ class MapServer:
             self.keys.all_tiles, self._guarded("tiles", self.replication.on_tiles)))
         self._declared.append(s.declare_queryable(
             self.keys.robots, self._guarded("robots", lambda q: self.fleet.robots_reply())))
-        if self.cluster is not None:  # pulls the tiles it will own before declaring itself
-            self.cluster.join(s, self.server_id)
-        self._declared.append(s.liveliness().declare_token(self.keys.server_token(self.server_id)))
         self._declared.append(s.declare_queryable(self.keys.ack,
                                                   self._guarded("ack", self._on_ack)))
+        if self.cluster is not None:  # pulls the tiles it will own before declaring itself
+            self.cluster.join(s, self.server_id)
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop accepting work, finish what is queued, flush the store, close the session."""
@@ -176,6 +181,8 @@ class MapServer:
             self._ros2.close(timeout)
             self._ros2 = None
         self._queue.close()
+        self._stopped.set()
+        self._end_warm_up()
         if self.cluster is not None:
             self.cluster.close()
         self.outcomes.attach(None)
@@ -359,19 +366,37 @@ class MapServer:
             started = time.perf_counter()
             code = "from sogm_service.core.sevds import warm_up; warm_up()"
             try:
-                done = subprocess.run([sys.executable, "-c", code], capture_output=True,
-                                      text=True, timeout=600, check=False)
-                if done.returncode == 0:
+                child = self._warm_up_child = subprocess.Popen(
+                    [sys.executable, "-c", code], stdout=subprocess.DEVNULL,
+                    stderr=subprocess.PIPE, text=True)
+                if self._stopped.is_set():  # stop() ran while it was starting
+                    child.terminate()
+                _, stderr = child.communicate(timeout=600)
+                if self._stopped.is_set():  # ended by stop(): nothing worth saying
+                    return
+                if child.returncode == 0:
                     log.info("supercell kernels compiled into the cache in %.1f s",
                              time.perf_counter() - started)
                 else:  # the first query will compile (and report) instead
                     log.warning("warming up the supercell kernels failed: %s",
-                                done.stderr.strip().splitlines()[-1:] or done.returncode)
+                                stderr.strip().splitlines()[-1:] or child.returncode)
             except (OSError, subprocess.SubprocessError) as exc:
                 log.warning("warming up the supercell kernels failed: %s", exc)
             finally:
                 self.warmed_up.set()
         threading.Thread(target=run, name="sogm-warm-up", daemon=True).start()
+
+    def _end_warm_up(self) -> None:
+        """A server stopped within seconds of starting (a replay with no scans, a test) leaves
+        no compiling child behind; the kernels then compile on a later start."""
+        child = self._warm_up_child
+        if child is not None and child.poll() is None:
+            child.terminate()
+            try:
+                child.wait(10)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait(5)
 
     def wait_warm(self, budget_s: float) -> None:
         """Wait up to ``budget_s`` for the warm-up; refuse with ``warming_up`` after that."""

@@ -159,7 +159,7 @@ def start_viewer(argv: list[str]) -> RunningViewer:
 
 def main(argv: list[str] | None = None) -> int:
     """``sogm-service view``: serve until SIGINT/SIGTERM; returns the exit code."""
-    import logging
+    from sogm_service.apps.logs import setup_logging
 
     try:
         args, host, port = _prepare(argv)
@@ -168,8 +168,7 @@ def main(argv: list[str] | None = None) -> int:
             print(exc.code, file=sys.stderr)
             return 2
         raise
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging("debug" if args.verbose else "info")
     try:
         server = _server(args, host)
     except ImportError as exc:
