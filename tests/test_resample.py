@@ -446,3 +446,30 @@ def test_biodds_refuses_an_unusable_eps0(eps0: float) -> None:
     g = GridGeometry(1.0, 2, 1)
     with pytest.raises(ValueError):
         resample_prob(np.array([[1.0, 0.0]]), g, g, "biodds", eps0)
+
+
+@pytest.mark.parametrize("interp", ["biodds", "nearest"])
+def test_tile_patches_are_their_blocks_and_do_not_depend_on_who_fuses(interp: str) -> None:
+    """Warped ISMs are warped a band of tiles at a time (one OpenCV call a tile row); every
+    patch has its block's shape, and a share of the tiles (a fuse worker's, a cluster
+    member's) gets the very bits the whole gets: bands span the footprint whatever is owned."""
+    from sogm_service.core.geometry import TileLattice
+    from sogm_service.core.resample import tile_patches
+
+    rng = np.random.default_rng(5)
+    inc = rng.integers(-3000, 3001, (70, 90)).astype(np.int16)
+    ism = GridGeometry(0.07, 90, 70, Pose2D(-1.31, -0.77, 0.6))
+    lattice = TileLattice(0.05, 32)
+    whole = {p.index: (p.block, p.patch.copy())
+             for p in tile_patches(inc, ism, lattice, interp)}  # type: ignore[arg-type]
+    assert len({index[1] for index in whole}) >= 3 and len(whole) >= 12
+    for block, patch in whole.values():
+        assert patch.shape == (block[3], block[2]) and patch.dtype == np.int16
+    assert sum(int(np.abs(p).sum()) > 0 for _, p in whole.values()) >= 8
+    for k in range(3):  # three workers' shares, as FuseWorkers splits tiles
+        share = {p.index: p.patch.copy() for p in tile_patches(
+            inc, ism, lattice, interp, owned=lambda i, k=k: (i[0] + i[1]) % 3 == k,  # type: ignore[misc,arg-type]
+            buffers=lambda h, w, d: np.empty((h, w), d))}
+        assert share and all((i[0] + i[1]) % 3 == k for i in share)
+        for index, patch in share.items():
+            assert np.array_equal(patch, whole[index][1]), index

@@ -136,8 +136,7 @@ ALIGN_TOL = 1e-6
 class TilePatch:
     """The part of an ISM that lands in one tile: cell block ``(u0, v0, w, h)`` and ``patch``.
 
-    ``patch`` is int16 fixed log-odds, or float32 for biodds (OpenCV's float warp is ~4x faster
-    than its int16 one; :func:`sogm_service.core.logodds.bayes_update` rounds while adding).
+    ``patch`` is int16 fixed log-odds (biodds warps float32 and rounds once per band).
     """
 
     index: tuple[int, int]
@@ -164,17 +163,13 @@ def lattice_offset(src: GridGeometry, resolution: float) -> tuple[int, int] | No
     return cu, cv
 
 
-def tile_block(corners: npt.NDArray[np.float64], index: tuple[int, int],
+def tile_block(box: tuple[int, int, int, int], index: tuple[int, int],
                tile_size: int) -> tuple[int, int, int, int] | None:
-    """Cell block ``(u0, v0, w, h)`` of tile ``index`` that a grid with ``corners`` (in map
-    cells, ``(4, 2)``) may cover, or None."""
+    """Cell block ``(u0, v0, w, h)`` of tile ``index`` that a grid with footprint ``box``
+    (:func:`footprint_box`) may cover, or None."""
     t = tile_size
-    u = corners[:, 0] - index[0] * t
-    v = corners[:, 1] - index[1] * t
-    u0 = max(0, math.floor(u.min() + ALIGN_TOL))
-    v0 = max(0, math.floor(v.min() + ALIGN_TOL))
-    u1 = min(t, math.ceil(u.max() - ALIGN_TOL))
-    v1 = min(t, math.ceil(v.max() - ALIGN_TOL))
+    u0, v0 = max(0, box[0] - index[0] * t), max(0, box[1] - index[1] * t)
+    u1, v1 = min(t, box[2] - index[0] * t), min(t, box[3] - index[1] * t)
     if u1 <= u0 or v1 <= v0:
         return None
     return u0, v0, u1 - u0, v1 - v0
@@ -187,11 +182,17 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
     """Every tile's share of the increments ``inc`` (given in ``geometry``), raster order;
     with ``owned``, only the tiles it accepts (a fuse worker's share of the lattice).
 
-    Aligned ISMs are sliced (views, no copy); others are warped block by block, the ISM's
-    inverse transform computed once, into one scratch buffer: a warped patch is valid only
-    until the next one is produced (consume it at once) -- unless ``buffers`` gives each
-    block's memory (``(h, w, dtype) -> array``), as :meth:`TiledMap.fuse` does to keep every
-    patch of an ISM until it has added them all.
+    Aligned ISMs are sliced (views, no copy).  Others are warped one band a row of tiles at a
+    time: the footprint's full width times the row's part of it, the ISM's inverse transform
+    computed once, each tile's patch a view of its band.  A band, not a tile: every OpenCV call
+    costs ~15 us beyond its cells (its thread pool's hand-off), 25 tiles' worth of which was
+    as much as half the warp of a 512x512 ISM.  Bands span the whole footprint whatever
+    ``owned`` says, so a cell's value never depends on who fuses it (OpenCV's float warp
+    differs in the last bits with the block's origin): any number of fuse workers, and any
+    cluster member, writes the same bits.  Biodds bands are rounded to int16 once (half to
+    even, as the add would).  A patch is valid until the next band is produced (consume it at
+    once) -- unless ``buffers`` gives each band's memory (``(h, w, dtype) -> array``), as
+    :meth:`TiledMap.fuse` does to keep every patch of an ISM until it has added them all.
     """
     if interp not in INTERPOLATIONS:
         raise ValueError(f"unknown interpolation {interp!r}; use one of {INTERPOLATIONS}")
@@ -203,33 +204,82 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
             if owned is None or owned(part.index):
                 yield part
         return
-    res, t = lattice.resolution, lattice.tile_size
-    corners = geometry.corners() / res
-    to_src = geometry.world_to_cell()
-    # float32: OpenCV's bilinear warp of float is ~4x faster than of int16 (SIMD).
-    src = inc.astype(np.float32) if interp == "biodds" else inc
-    # One tile-sized buffer for every block: fresh arrays of this size are mmapped and
-    # page-faulted on every call by glibc, which costs as much as the warp itself.
-    scratch = np.empty((t, t), dtype=src.dtype) if buffers is None else None
+    box = footprint_box(geometry.corners() / lattice.resolution)
+    bands = _Bands(inc, geometry, lattice, interp, box, buffers)
     for index in lattice.tiles_overlapping(geometry):
         if owned is not None and not owned(index):
             continue
-        block = tile_block(corners, index, t)
+        block = tile_block(box, index, lattice.tile_size)
         if block is None:
             continue
-        u0, v0, w, h = block
-        x0, y0 = index[0] * lattice.span + u0 * res, index[1] * lattice.span + v0 * res
         if interp == "bilinear":  # on probabilities: the rare, slow path
-            sub = GridGeometry(res, w, h, Pose2D(x0, y0, 0.0))
-            yield TilePatch(index, block, resample_logodds(inc, geometry, sub, interp))
+            yield TilePatch(index, block, _bilinear_block(inc, geometry, lattice, index, block))
             continue
-        c2w = np.array([[res, 0.0, x0 + 0.5 * res], [0.0, res, y0 + 0.5 * res], [0, 0, 1.0]])
-        if buffers is not None:
-            out = buffers(h, w, src.dtype)
-        else:
-            assert scratch is not None
-            out = scratch[:h, :w]
-        yield TilePatch(index, block, _warp_block(src, to_src @ c2w, out, interp))
+        yield TilePatch(index, block, bands.patch(index, block))
+
+
+def footprint_box(corners: npt.NDArray[np.float64]) -> tuple[int, int, int, int]:
+    """Map cells ``(u0, v0, u1, v1)`` (end exclusive) that a grid with ``corners`` (in map
+    cells) may cover; within a tile, :func:`tile_block`."""
+    return (math.floor(corners[:, 0].min() + ALIGN_TOL),
+            math.floor(corners[:, 1].min() + ALIGN_TOL),
+            math.ceil(corners[:, 0].max() - ALIGN_TOL),
+            math.ceil(corners[:, 1].max() - ALIGN_TOL))
+
+
+class _Bands:
+    """The warped bands of one ISM (:func:`tile_patches`), made on first use."""
+
+    def __init__(self, inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: TileLattice,
+                 interp: Interp, box: tuple[int, int, int, int],
+                 buffers: Buffers | None) -> None:
+        # float32: OpenCV's bilinear warp of float is ~4x faster than of int16 (SIMD).
+        self.src = inc.astype(np.float32) if interp == "biodds" else inc
+        self.to_src = geometry.world_to_cell()
+        self.lattice, self.interp, self.buffers = lattice, interp, buffers
+        self.box = box
+        self.row: int | None = None  # the tile row of ``band``
+        self.band: npt.NDArray = np.empty((0, 0), np.int16)
+        self.v0 = 0
+        # Without ``buffers``: one band's memory for every band (fresh arrays of this size are
+        # mmapped and page-faulted on every call by glibc, which costs as much as the warp).
+        self.reused: dict[np.dtype, npt.NDArray] = {}
+
+    def patch(self, index: tuple[int, int], block: tuple[int, int, int, int]) -> npt.NDArray:
+        if index[1] != self.row:
+            self._warp_row(index[1])
+        t, (u0, v0, w, h) = self.lattice.tile_size, block
+        gu, gv = index[0] * t + u0 - self.box[0], index[1] * t + v0 - self.v0
+        return self.band[gv:gv + h, gu:gu + w]
+
+    def _warp_row(self, j: int) -> None:
+        t, res = self.lattice.tile_size, self.lattice.resolution
+        u0, vmin, u1, vmax = self.box
+        v0, v1 = max(vmin, j * t), min(vmax, (j + 1) * t)
+        c2w = np.array([[res, 0.0, (u0 + 0.5) * res], [0.0, res, (v0 + 0.5) * res], [0, 0, 1.0]])
+        warped = _warp_block(self.src, self.to_src @ c2w,
+                             self._memory(v1 - v0, u1 - u0, self.src.dtype), self.interp)
+        if warped.dtype == np.float32:  # biodds: rounded once here, not per tile in the add
+            warped = np.rint(warped, out=self._memory(v1 - v0, u1 - u0, np.dtype(np.int16)),
+                             casting="unsafe")
+        self.row, self.band, self.v0 = j, warped, v0
+
+    def _memory(self, h: int, w: int, dtype: np.dtype) -> npt.NDArray:
+        if self.buffers is not None:
+            return self.buffers(h, w, dtype)
+        buf = self.reused.get(np.dtype(dtype))
+        if buf is None or buf.size < h * w:
+            buf = self.reused[np.dtype(dtype)] = np.empty(h * w, dtype)
+        return buf[:h * w].reshape(h, w)
+
+
+def _bilinear_block(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: TileLattice,
+                    index: tuple[int, int], block: tuple[int, int, int, int]
+                    ) -> npt.NDArray[np.int16]:
+    res, (u0, v0, w, h) = lattice.resolution, block
+    x0, y0 = index[0] * lattice.span + u0 * res, index[1] * lattice.span + v0 * res
+    return resample_logodds(inc, geometry, GridGeometry(res, w, h, Pose2D(x0, y0, 0.0)),
+                            "bilinear")
 
 
 def _aligned_patches(inc: npt.NDArray[np.int16], offset: tuple[int, int],
