@@ -20,6 +20,7 @@ float32 log-odds and rounds.  The tests check it against an exact numpy oracle
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Literal
@@ -190,9 +191,10 @@ def tile_patches(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: Ti
     ``owned`` says, so a cell's value never depends on who fuses it (OpenCV's float warp
     differs in the last bits with the block's origin): any number of fuse workers, and any
     cluster member, writes the same bits.  Biodds bands are rounded to int16 once (half to
-    even, as the add would).  A patch is valid until the next band is produced (consume it at
-    once) -- unless ``buffers`` gives each band's memory (``(h, w, dtype) -> array``), as
-    :meth:`TiledMap.fuse` does to keep every patch of an ISM until it has added them all.
+    even, as the add would).  A patch is valid until this thread produces the next band
+    (consume it at once) -- unless ``buffers`` gives each band's int16 memory (``(h, w,
+    dtype) -> array``), as :meth:`TiledMap.fuse` does to keep every patch of an ISM until it
+    has added them all (2 bytes a footprint cell; the float32 warp is passing memory).
     """
     if interp not in INTERPOLATIONS:
         raise ValueError(f"unknown interpolation {interp!r}; use one of {INTERPOLATIONS}")
@@ -239,11 +241,8 @@ class _Bands:
         self.lattice, self.interp, self.buffers = lattice, interp, buffers
         self.box = box
         self.row: int | None = None  # the tile row of ``band``
-        self.band: npt.NDArray = np.empty((0, 0), np.int16)
+        self.band: npt.NDArray[np.int16] = np.empty((0, 0), np.int16)
         self.v0 = 0
-        # Without ``buffers``: one band's memory for every band (fresh arrays of this size are
-        # mmapped and page-faulted on every call by glibc, which costs as much as the warp).
-        self.reused: dict[np.dtype, npt.NDArray] = {}
 
     def patch(self, index: tuple[int, int], block: tuple[int, int, int, int]) -> npt.NDArray:
         if index[1] != self.row:
@@ -256,21 +255,45 @@ class _Bands:
         t, res = self.lattice.tile_size, self.lattice.resolution
         u0, vmin, u1, vmax = self.box
         v0, v1 = max(vmin, j * t), min(vmax, (j + 1) * t)
+        h, w = v1 - v0, u1 - u0
         c2w = np.array([[res, 0.0, (u0 + 0.5) * res], [0.0, res, (v0 + 0.5) * res], [0, 0, 1.0]])
-        warped = _warp_block(self.src, self.to_src @ c2w,
-                             self._memory(v1 - v0, u1 - u0, self.src.dtype), self.interp)
-        if warped.dtype == np.float32:  # biodds: rounded once here, not per tile in the add
-            warped = np.rint(warped, out=self._memory(v1 - v0, u1 - u0, np.dtype(np.int16)),
-                             casting="unsafe")
-        self.row, self.band, self.v0 = j, warped, v0
+        m = self.to_src @ c2w
+        if self.interp == "nearest":  # int16 in, int16 out
+            band = _warp_block(self.src, m, self._kept(h, w), self.interp)
+        else:  # biodds: warped in float32 (passing), rounded once into the band that is kept
+            warped = _warp_block(self.src, m, _passing_float(h, w), self.interp)
+            band = np.rint(warped, out=self._kept(h, w), casting="unsafe")
+        self.row, self.band, self.v0 = j, band, v0
 
-    def _memory(self, h: int, w: int, dtype: np.dtype) -> npt.NDArray:
+    def _kept(self, h: int, w: int) -> npt.NDArray[np.int16]:
+        """The band's int16 memory: from ``buffers`` (kept until the fuse has added every
+        patch), else this thread's one reused band (valid until the next)."""
         if self.buffers is not None:
-            return self.buffers(h, w, dtype)
-        buf = self.reused.get(np.dtype(dtype))
-        if buf is None or buf.size < h * w:
-            buf = self.reused[np.dtype(dtype)] = np.empty(h * w, dtype)
-        return buf[:h * w].reshape(h, w)
+            return self.buffers(h, w, np.dtype(np.int16))
+        return _reused(h, w, np.dtype(np.int16), "kept")
+
+
+_band_memory = threading.local()
+
+_REUSED_MAX = 16 << 20
+"""Bytes: bands beyond this get fresh memory instead of growing the thread's reused one."""
+
+
+def _passing_float(h: int, w: int) -> npt.NDArray[np.float32]:
+    return _reused(h, w, np.dtype(np.float32), "float")
+
+
+def _reused(h: int, w: int, dtype: np.dtype, role: str) -> npt.NDArray:
+    """This thread's reused ``(h, w)`` array for ``role`` (fresh arrays of a band's size are
+    mmapped and page-faulted by glibc on every call, which costs as much as the warp)."""
+    if h * w * dtype.itemsize > _REUSED_MAX:
+        return np.empty((h, w), dtype)
+    buf: npt.NDArray | None = getattr(_band_memory, role, None)
+    if buf is None or buf.size < h * w:
+        grown = min(2 * (0 if buf is None else buf.size), _REUSED_MAX // dtype.itemsize)
+        buf = np.empty(max(h * w, grown), dtype)
+        setattr(_band_memory, role, buf)
+    return buf[:h * w].reshape(h, w)
 
 
 def _bilinear_block(inc: npt.NDArray[np.int16], geometry: GridGeometry, lattice: TileLattice,

@@ -100,7 +100,7 @@ class Target:
 
 
 SCRATCH_MAX = 64 * 256 * 256 * 4
-"""Bytes of warped patches a thread keeps between ISMs, at most (64 float32 tiles of 256)."""
+"""Bytes of warped patches a thread keeps between ISMs, at most (128 int16 tiles of 256)."""
 
 
 class Scratch(threading.local):
