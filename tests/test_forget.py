@@ -137,12 +137,47 @@ def test_writes_closer_than_the_quantum_add_without_decaying() -> None:
     assert snap.decay == {"people": 100.4}
 
 
-def test_an_older_ism_is_added_undecayed() -> None:
+def test_an_older_ism_counts_as_old_as_it_is() -> None:
     tiled = new_map()
     put(tiled, "people", 1000, 110.0)
-    put(tiled, "people", 100, 105.0)  # another robot's, late
-    assert cell(tiled, "people", 110.0) == 1100
-    assert cell(tiled, "people", 120.0) == 550
+    put(tiled, "people", 100, 105.0)  # another robot's, 5 s late: half a half-life
+    assert cell(tiled, "people", 110.0) == 1000 + expect(100, 5.0) == 1070
+    assert cell(tiled, "people", 120.0) == expect(1070, 10.0) == 535
+    put(tiled, "people", 100, 110.0 - 0.9 * forget.QUANTUM * H)  # within h/32: as it is
+    assert cell(tiled, "people", 110.0) == 1170
+
+
+def test_a_layers_first_write_starts_its_own_decay_whatever_other_layers_hold() -> None:
+    """Robot b's layer written late into a tile robot a's layer wrote at 110: b's evidence
+    from 100 reads decayed from 100, as it does where b's ISM came first (cluster members
+    may receive two robots' ISMs in either order)."""
+    late, early = new_map(), new_map()
+    put(late, "a/carts", 500, 110.0)
+    put(late, "people", 1000, 100.0)
+    put(early, "people", 1000, 100.0)
+    put(early, "a/carts", 500, 110.0)
+    for tiled in (late, early):
+        assert cell(tiled, "people", 110.0) == expect(1000, 10.0) == 500
+    assert np.array_equal(late.snapshot((0, 0)).data, early.snapshot((0, 0)).data[::-1])
+
+
+def test_robots_own_layers_give_the_same_bits_in_any_interleaving() -> None:
+    """Each robot's ISMs in order, the robots interleaved at random: bit-identical maps."""
+    rng = np.random.default_rng(3)
+    robots = {f"r{k}/carts": [(int(v), float(t)) for v, t in zip(
+        rng.integers(-3000, 3000, 12), np.sort(rng.uniform(0, 60, 12)), strict=True)]
+        for k in range(3)}
+    maps = []
+    for _ in range(5):
+        tiled, queues = new_map(), {name: list(isms) for name, isms in robots.items()}
+        tiled.adopt_layers(sorted(robots))  # the same layer order everywhere
+        while any(queues.values()):
+            name = str(rng.choice([n for n, q in queues.items() if q]))
+            value, stamp = queues[name].pop(0)
+            put(tiled, name, value, stamp, x=int(stamp) % 4)
+        maps.append(tiled.mosaic(BOX, [tiled.layer_id(n) for n in sorted(robots)], 60.0))
+    for m in maps[1:]:
+        assert np.array_equal(m, maps[0])
 
 
 def test_frequent_writes_reach_exactly_unknown() -> None:

@@ -13,7 +13,12 @@ then is applied as one multiplication when the tile is touched
   added.  Closer writes add without decaying (``t_d`` stays), so a tile written at 4 Hz is
   multiplied at most every ``h / 32``: the cost is bounded and rounding cannot stall the decay.
   Evidence added in such a window is decayed from ``t_d``, i.e. up to ``2 ** (-1/32)`` (2.1 %)
-  more than exactly.  An ISM older than ``t_d`` (another robot's, late) is added undecayed.
+  more than exactly.  An ISM older than ``t_d`` by ``h / 32`` or more (another robot's, late)
+  is added decayed by ``0.5 ** ((t_d - t) / h)``: evidence counts by its age, whatever order
+  it arrives in.  A layer's first write into a tile starts its ``t_d`` at that ISM's stamp
+  (not at the tile's latest stamp of any layer), so robots writing their own layers give the
+  same bits in any interleaving -- on one server and on every cluster member, which may
+  receive two robots' ISMs in different orders.
 * **read** (a sub-map, a mosaic, scan matching) at time ``now``: the copy is decayed by
   ``0.5 ** ((now - t_d) / h)``; the tile itself is left as it is.  So reads never change the
   map: its state is a function of the ISMs each tile received, in their order, whatever the

@@ -296,8 +296,9 @@ class TiledMap:
         no tile has changed: the tiles it created or loaded back leave the map again and the
         exception propagates; the layer and the map's clock are not even touched.  Phase 2
         allocates nothing but a decaying layer's temporaries (one ``(T, T)`` float64 array
-        twice), and fetches a tile again only if :meth:`insert_tile` or :meth:`discard`
-        replaced or removed it meanwhile (a cluster's handover).
+        twice; a late ISM's patch, decayed by its age), and fetches a tile again only if
+        :meth:`insert_tile` or :meth:`discard` replaced or removed it meanwhile (a cluster's
+        handover).
         """
         # Phase 1: every patch (warped ones into this thread's scratch), then every tile.
         parts = list(tile_patches(inc, geometry, self.lattice, interp, owned,
@@ -432,17 +433,28 @@ class TiledMap:
             tile.decay[lid] = float(t)
             self.advance_clock(t)
 
-    def _decay_for_write(self, tile: Tile, lid: int, stamp: float) -> None:
-        """Before an ISM of ``stamp`` is added (the caller holds ``tile.lock``)."""
+    def _decay_for_write(self, tile: Tile, lid: int, stamp: float, first: bool) -> float:
+        """Before an ISM of ``stamp`` is added (the caller holds ``tile.lock``): the layer
+        decayed up to ``stamp``; returns the factor the ISM's own increments take (1.0 unless
+        it is older than the layer's cells: another robot's, late).  A layer's first write
+        into the tile (``first``) starts its decay stamp at ``stamp``: what other layers were
+        written before does not matter, so the result does not depend on how ISMs of
+        different robots interleave."""
         h = self.half_life(lid)
         if h is None:
-            return
-        t_d = tile.decay.setdefault(lid, tile.stamp)
+            return 1.0
+        if first:
+            tile.decay[lid] = stamp
+            return 1.0
+        t_d = tile.decay.setdefault(lid, tile.stamp)  # a tile from before decay stamps
         if stamp - t_d >= forget.QUANTUM * h:
             plane = tile.planes.get(lid)
             if plane is not None:  # an absent plane is unknown: nothing to decay
                 forget.decay_in_place(plane, forget.decay_factor(stamp - t_d, h))
             tile.decay[lid] = stamp
+        elif t_d - stamp >= forget.QUANTUM * h:
+            return forget.decay_factor(t_d - stamp, h)
+        return 1.0
 
     def _decay_for_read(self, tile: Tile, lid: int, block: npt.NDArray[np.int16],
                         now: float) -> None:
@@ -571,9 +583,12 @@ class TiledMap:
                     tile.pins -= 1
                     target.pinned = False
                 if not tile.evicted:
+                    first = lid not in tile.planes
                     plane = self._plane(tile, lid, target.fresh)
                     target.fresh = None
-                    self._decay_for_write(tile, lid, stamp)
+                    age = self._decay_for_write(tile, lid, stamp, first)
+                    if age != 1.0:  # a late ISM counts as old as it is
+                        patch = forget.decayed(patch, age)
                     logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], patch, self.limits)
                     tile.version = self.tick()
                     tile.stamp = max(tile.stamp, stamp)

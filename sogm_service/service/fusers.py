@@ -5,10 +5,11 @@ usually spans) go to different workers.  The ingestion worker hands every prepar
 workers that own one of its tiles, in arrival order; each worker resamples the rows of tiles
 its own lie in (a band spans the footprint, so the bits do not depend on the split) and adds
 only its own tiles (:meth:`sogm_service.core.tiles.TiledMap.fuse` with ``owned``), in the
-order it got them.  So every tile sees the ISMs that touch it in arrival order, whatever K: the map is
-bit-identical to one worker's.  The resampling (OpenCV warps) and the add release the GIL, so
-the workers run on several cores at once; queues between them are short and bounded, so a full
-worker pushes back to the ingestion queue (and from there to the publishers).
+order it got them.  So every tile sees the ISMs that touch it in arrival order, whatever K:
+the map is bit-identical to one worker's.  The resampling (OpenCV warps) and the add release
+the GIL, so the workers run on several cores at once; queues between them are short and
+bounded, so a full worker pushes back to the ingestion queue (and from there to the
+publishers).
 
 With ``K = 1`` the ingestion worker fuses itself (no hand-off at all).
 """
