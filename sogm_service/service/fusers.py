@@ -1,15 +1,17 @@
 """Fusing ISMs on several threads over disjoint tiles (DESIGN.md section 6).
 
-Tile ``(i, j)`` belongs to fuse worker ``(i + j) mod K``, so neighbouring tiles (those one ISM
-usually spans) go to different workers.  The ingestion worker hands every prepared ISM to the
-workers that own one of its tiles, in arrival order; each worker resamples the rows of tiles
-its own lie in (a band spans the footprint, so the bits do not depend on the split) and adds
-only its own tiles (:meth:`sogm_service.core.tiles.TiledMap.fuse` with ``owned``), in the
-order it got them.  So every tile sees the ISMs that touch it in arrival order, whatever K:
-the map is bit-identical to one worker's.  The resampling (OpenCV warps) and the add release
-the GIL, so the workers run on several cores at once; queues between them are short and
-bounded, so a full worker pushes back to the ingestion queue (and from there to the
-publishers).
+Tile ``(i, j)`` belongs to fuse worker ``j mod K``: a whole row of tiles to one worker, since
+a rotated ISM is warped a row of tiles at a time (a band spanning the footprint,
+:func:`sogm_service.core.resample.tile_patches`) and a worker sharing a row with another would
+warp that band again; neighbouring rows (an ISM usually spans two or three) go to different
+workers.  The ingestion worker hands every prepared ISM to the workers that own one of its
+tiles, in arrival order; each worker warps the bands of its rows (the bits do not depend on
+the split) and adds only its own tiles (:meth:`sogm_service.core.tiles.TiledMap.fuse` with
+``owned``), in the order it got them.  So every tile sees the ISMs that touch it in arrival
+order, whatever K: the map is bit-identical to one worker's.  The resampling (OpenCV warps)
+and the add release the GIL, so the workers run on several cores at once; queues between them
+are short and bounded, so a full worker pushes back to the ingestion queue (and from there to
+the publishers).
 
 With ``K = 1`` the ingestion worker fuses itself (no hand-off at all).
 """
@@ -81,7 +83,7 @@ class FuseJob:
 
 
 class FuseWorkers:
-    """``workers`` fuse threads, each owning the tiles ``(i + j) mod workers`` of its number."""
+    """``workers`` fuse threads, each owning the rows of tiles ``j mod workers`` of its number."""
 
     def __init__(self, tiled: TiledMap, workers: int) -> None:
         if workers < 1:
@@ -104,7 +106,7 @@ class FuseWorkers:
                 t.start()
 
     def owner(self, index: TileIndex) -> int:
-        return (index[0] + index[1]) % self.workers
+        return index[1] % self.workers
 
     def submit(self, job: FuseJob) -> None:
         """Fuse ``job`` (at once with one worker; else queued to the workers owning its tiles,

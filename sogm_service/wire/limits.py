@@ -30,9 +30,10 @@ QUEUE_SIZE: Final = 64
 
 FUSE_WORKERS: Final = 1
 """Threads that fuse ISMs, each over its own share of the tiles (the map is the same for any
-number).  1 on a 2-core machine: measured there, the server ingests 2199 ISM/s with 1 worker
-and 1636 with 2 (the GIL-held Python per tile and OpenCV's own threads leave no core to gain);
-raise it on machines with cores to spare and measure with ``sogm-service bench ingest``."""
+number).  1 on a 2-core machine: measured there, the server ingests 2300-2500 ISM/s with 1
+worker and 1700-1800 with 2 (the GIL-held Python per tile and OpenCV's own threads leave no
+core to gain); raise it on machines with cores to spare and measure with ``sogm-service bench
+ingest``."""
 
 LAYER_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-./]{1,128}$"
 """What a layer name may be: up to 128 characters of ``[A-Za-z0-9_-./]``."""
