@@ -587,9 +587,9 @@ class TiledMap:
                     plane = self._plane(tile, lid, target.fresh)
                     target.fresh = None
                     age = self._decay_for_write(tile, lid, stamp, first)
-                    if age != 1.0:  # a late ISM counts as old as it is
-                        patch = forget.decayed(patch, age)
-                    logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], patch, self.limits)
+                    # A late ISM counts as old as it is.
+                    added = patch if age == 1.0 else forget.decayed(patch, age)
+                    logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], added, self.limits)
                     tile.version = self.tick()
                     tile.stamp = max(tile.stamp, stamp)
                     if mark is not None:
