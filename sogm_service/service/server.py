@@ -371,7 +371,12 @@ class MapServer:
                     stderr=subprocess.PIPE, text=True)
                 if self._stopped.is_set():  # stop() ran while it was starting
                     child.terminate()
-                _, stderr = child.communicate(timeout=600)
+                try:
+                    _, stderr = child.communicate(timeout=600)
+                except subprocess.TimeoutExpired:
+                    child.kill()
+                    child.communicate()
+                    raise
                 if self._stopped.is_set():  # ended by stop(): nothing worth saying
                     return
                 if child.returncode == 0:
