@@ -387,3 +387,30 @@ def test_server_forgets_by_stamps_and_across_a_restart(tmp_path: Path) -> None:
             assert sub[0, 0, 6] == l_occ
     finally:
         assert again.terminate() == 0
+
+
+def test_decaying_into_given_memory_gives_the_same_bits() -> None:
+    rng = np.random.default_rng(8)
+    state = rng.integers(-16000, 16001, (37, 41)).astype(np.int16)
+    for factor in (0.0, 1e-9, 0.3, 0.5, 0.999, 1.0):
+        out, work = np.empty_like(state), np.empty(state.shape, np.float64)
+        assert np.array_equal(forget.decayed_into(state, factor, out, work),
+                              forget.decayed(state, factor))
+    with pytest.raises(ValueError):
+        forget.decayed_into(state, 1.5, np.empty_like(state), np.empty(state.shape))
+
+
+def test_a_fuse_into_a_decaying_layer_allocates_nothing_in_phase_2(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The decay on write and a late ISM's aged patch use memory taken in phase 1, so a
+    MemoryError cannot strike between the first tile added and the last."""
+    tiled = new_map()
+    put(tiled, "people", 1000, 100.0)
+
+    def refuse(*args: object) -> None:
+        raise AssertionError("allocated in phase 2")
+
+    monkeypatch.setattr(forget, "decayed", refuse)
+    put(tiled, "people", 200, 110.0)  # decays the tile, then adds
+    put(tiled, "people", 100, 105.0)  # late: its patch aged
+    assert cell(tiled, "people", 110.0) == 500 + 200 + expect(100, 5.0)

@@ -68,10 +68,28 @@ def decayed(state: npt.NDArray[np.int16], factor: float) -> Fixed:
     return np.trunc(state.astype(np.float64) * factor).astype(np.int16)
 
 
-def decay_in_place(state: npt.NDArray[np.int16], factor: float) -> None:
-    """:func:`decayed`, written back into ``state`` (a no-op for ``factor == 1``)."""
-    if factor != 1.0:
+def decayed_into(state: npt.NDArray[np.int16], factor: float, out: npt.NDArray[np.int16],
+                 work: npt.NDArray[np.float64]) -> Fixed:
+    """:func:`decayed` into ``out`` through ``work`` (float64), both of ``state``'s shape:
+    the same bits, no allocation (``out`` may be ``state``)."""
+    if not 0.0 <= factor <= 1.0:
+        raise ValueError(f"decay factor must lie in [0, 1], got {factor!r}")
+    np.multiply(state, factor, out=work)
+    np.trunc(work, out=work)
+    np.copyto(out, work, casting="unsafe")
+    return out
+
+
+def decay_in_place(state: npt.NDArray[np.int16], factor: float,
+                   work: npt.NDArray[np.float64] | None = None) -> None:
+    """:func:`decayed`, written back into ``state`` (a no-op for ``factor == 1``); with
+    ``work`` (float64, ``state``'s shape) it allocates nothing."""
+    if factor == 1.0:
+        return
+    if work is None:
         np.copyto(state, decayed(state, factor))
+    else:
+        decayed_into(state, factor, state, work)
 
 
 class ForgetRules:
