@@ -5,8 +5,8 @@ the whole map.  Here a layer may have a **half-life** ``h`` (seconds): evidence 
 counts ``0.5 ** (dt / h)`` as much, so a moving person's old positions fade to unknown while
 walls (layers without a half-life) stay.  Nothing sweeps the map: each tile keeps, per decaying
 layer, the time up to which its cells are decayed (``Tile.decay``), and the elapsed time since
-then is applied as one multiplication when the tile is touched
-(:class:`sogm_service.core.tiles.TiledMap`):
+then is applied as one multiplication when the tile is touched (:func:`before_write` and
+:func:`for_read`, called by :class:`sogm_service.core.tiles.TiledMap`):
 
 * **write** (an ISM of stamp ``t`` fused into the tile): if ``t - t_d >= h / 32`` the tile's
   layer is decayed in place by ``0.5 ** ((t - t_d) / h)`` and ``t_d = t``; then the ISM is
@@ -41,10 +41,15 @@ from __future__ import annotations
 
 import fnmatch
 import math
+import threading
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from sogm_service.core.tile import Tile
 
 QUANTUM = 1.0 / 32.0
 """A tile's layer is decayed in place on write at most every ``QUANTUM * half_life``."""
@@ -90,6 +95,66 @@ def decay_in_place(state: npt.NDArray[np.int16], factor: float,
         np.copyto(state, decayed(state, factor))
     else:
         decayed_into(state, factor, state, work)
+
+
+class DecayWork(threading.local):
+    """Per thread: the memory a decaying layer's write needs in a fuse's phase 2 (the float64
+    work array of a decay, a late ISM's aged patch), taken in phase 1 so that phase 2
+    allocates nothing.  One tile's worth of each, kept for the next ISM."""
+
+    def __init__(self) -> None:
+        self.work: npt.NDArray[np.float64] = np.empty((0, 0), np.float64)
+        self.patch: Fixed = np.empty((0, 0), np.int16)
+
+    def ensure(self, tile_size: int) -> DecayWork:
+        if self.work.shape != (tile_size, tile_size):
+            self.work = np.empty((tile_size, tile_size), np.float64)
+            self.patch = np.empty((tile_size, tile_size), np.int16)
+        return self
+
+
+decay_work = DecayWork()
+
+
+# -- a tile's decaying layer (module docstring: write, read) --------------------------------
+def before_write(tile: Tile, lid: int, half_life: float, stamp: float, first: bool,
+                 work: DecayWork | None = None) -> float:
+    """Before an ISM of ``stamp`` is added to layer ``lid`` of ``tile`` (the caller holds
+    ``tile.lock``): the layer decayed up to ``stamp``; returns the factor the ISM's own
+    increments take (1.0 unless it is older than the layer's cells: another robot's, late).
+    A layer's first write into the tile (``first``) starts its decay stamp at ``stamp``:
+    what other layers were written before does not matter, so the result does not depend on
+    how ISMs of different robots interleave."""
+    if first:
+        tile.decay[lid] = stamp
+        return 1.0
+    t_d = tile.decay.setdefault(lid, tile.stamp)  # a tile from before decay stamps
+    if stamp - t_d >= QUANTUM * half_life:
+        plane = tile.planes.get(lid)
+        if plane is not None:  # an absent plane is unknown: nothing to decay
+            decay_in_place(plane, decay_factor(stamp - t_d, half_life),
+                           None if work is None else work.work)
+        tile.decay[lid] = stamp
+    elif t_d - stamp >= QUANTUM * half_life:
+        return decay_factor(t_d - stamp, half_life)
+    return 1.0
+
+
+def aged(patch: Fixed, age: float, work: DecayWork | None = None) -> Fixed:
+    """A late ISM's patch as old as it is (:func:`before_write`'s factor; into ``work``'s
+    memory when given)."""
+    if work is None:
+        return decayed(patch, age)
+    h, w = patch.shape
+    return decayed_into(patch, age, work.patch[:h, :w], work.work[:h, :w])
+
+
+def for_read(tile: Tile, lid: int, half_life: float, block: Fixed, now: float) -> None:
+    """A block copied out of layer ``lid`` of ``tile``, as it is at ``now`` (``tile.lock``
+    held)."""
+    f = decay_factor(now - tile.decay.get(lid, tile.stamp), half_life)
+    if f != 1.0:
+        block[...] = decayed(block, f)
 
 
 class ForgetRules:

@@ -134,24 +134,6 @@ class Scratch(threading.local):
 scratch = Scratch()
 
 
-class DecayWork(threading.local):
-    """Per thread: the memory a decaying layer's write needs in a fuse's phase 2 (the float64
-    work array of a decay, a late ISM's decayed patch), taken in phase 1 so that phase 2
-    allocates nothing.  One tile's worth of each, kept for the next ISM."""
-
-    def __init__(self) -> None:
-        self.work: npt.NDArray[np.float64] = np.empty((0, 0), np.float64)
-        self.patch: npt.NDArray[np.int16] = np.empty((0, 0), np.int16)
-
-    def ensure(self, tile_size: int) -> DecayWork:
-        if self.work.shape != (tile_size, tile_size):
-            self.work = np.empty((tile_size, tile_size), np.float64)
-            self.patch = np.empty((tile_size, tile_size), np.int16)
-        return self
-
-
-decay_work = DecayWork()
-
 
 def planes_of(ids: list[int], stack: npt.NDArray[np.int16],
               limits: tuple[int, int] | None = None) -> dict[int, npt.NDArray[np.int16]]:

@@ -53,16 +53,7 @@ from sogm_service.core.resample import (
     resample_stack,
     tile_patches,
 )
-from sogm_service.core.tile import (
-    DecayWork,
-    Owner,
-    Target,
-    Tile,
-    TileSnapshot,
-    decay_work,
-    planes_of,
-    scratch,
-)
+from sogm_service.core.tile import Owner, Target, Tile, TileSnapshot, planes_of, scratch
 from sogm_service.core.tiletypes import Loader, TileIndex
 from sogm_service.core.tiletypes import Mark as Mark  # re-exported (its home before)
 
@@ -305,7 +296,7 @@ class TiledMap:
         no tile has changed: the tiles it created or loaded back leave the map again and the
         exception propagates; the layer and the map's clock are not even touched.  Phase 2
         allocates nothing (a decaying layer's work memory is taken in phase 1,
-        :class:`~sogm_service.core.tile.DecayWork`), and fetches a tile again only if
+        :class:`~sogm_service.core.forget.DecayWork`), and fetches a tile again only if
         :meth:`insert_tile` or :meth:`discard` replaced or removed it meanwhile (a cluster's
         handover).
         """
@@ -314,7 +305,7 @@ class TiledMap:
         parts = list(tile_patches(inc, geometry, self.lattice, interp, owned,
                                   buffers=scratch.reset().take))
         forgets = bool(self._forget) and self._forget.half_life(layer) is not None
-        work = decay_work.ensure(self.tile_size) if forgets else None
+        work = forget.decay_work.ensure(self.tile_size) if forgets else None
         targets = self._acquire(parts, self._layer_index.get(layer))
         try:  # phase 2: nothing here can fail (see the docstring)
             lid = self.layer_id(layer, create=True)
@@ -445,49 +436,12 @@ class TiledMap:
             tile.decay[lid] = float(t)
             self.advance_clock(t)
 
-    def _decay_for_write(self, tile: Tile, lid: int, stamp: float, first: bool,
-                         work: DecayWork | None = None) -> float:
-        """Before an ISM of ``stamp`` is added (the caller holds ``tile.lock``): the layer
-        decayed up to ``stamp``; returns the factor the ISM's own increments take (1.0 unless
-        it is older than the layer's cells: another robot's, late).  A layer's first write
-        into the tile (``first``) starts its decay stamp at ``stamp``: what other layers were
-        written before does not matter, so the result does not depend on how ISMs of
-        different robots interleave."""
-        h = self.half_life(lid)
-        if h is None:
-            return 1.0
-        if first:
-            tile.decay[lid] = stamp
-            return 1.0
-        t_d = tile.decay.setdefault(lid, tile.stamp)  # a tile from before decay stamps
-        if stamp - t_d >= forget.QUANTUM * h:
-            plane = tile.planes.get(lid)
-            if plane is not None:  # an absent plane is unknown: nothing to decay
-                forget.decay_in_place(plane, forget.decay_factor(stamp - t_d, h),
-                                      None if work is None else work.work)
-            tile.decay[lid] = stamp
-        elif t_d - stamp >= forget.QUANTUM * h:
-            return forget.decay_factor(t_d - stamp, h)
-        return 1.0
-
-    @staticmethod
-    def _aged(patch: npt.NDArray[np.int16], age: float,
-              work: DecayWork | None) -> npt.NDArray[np.int16]:
-        """A late ISM's patch as old as it is (into ``work``'s memory when given)."""
-        if work is None:
-            return forget.decayed(patch, age)
-        h, w = patch.shape
-        return forget.decayed_into(patch, age, work.patch[:h, :w], work.work[:h, :w])
-
     def _decay_for_read(self, tile: Tile, lid: int, block: npt.NDArray[np.int16],
                         now: float) -> None:
         """A copied block of a decaying layer as it is at ``now`` (``tile.lock`` held)."""
         h = self.half_life(lid)
-        if h is None:
-            return
-        f = forget.decay_factor(now - tile.decay.get(lid, tile.stamp), h)
-        if f != 1.0:
-            block[...] = forget.decayed(block, f)
+        if h is not None:
+            forget.for_read(tile, lid, h, block, now)
 
     # -- the gather path of coarse windows (:mod:`sogm_service.core.gather`) ----------------
     def gather(self, window: GridGeometry, layer_ids: list[int], box: tuple[int, int, int, int],
@@ -596,7 +550,7 @@ class TiledMap:
                         self.stored.add(tile.index)  # as it was: stored, not resident
 
     def _add(self, target: Target, lid: int, stamp: float, mark: tuple[str, Mark] | None,
-             work: DecayWork | None = None) -> TileIndex | None:
+             work: forget.DecayWork | None = None) -> TileIndex | None:
         """Phase 2 for one tile: Eq. 1 under its lock, then unpinned."""
         index, (u0, v0, w, h), patch = target.part.index, target.part.block, target.part.patch
         tile: Tile | None = target.tile
@@ -609,8 +563,10 @@ class TiledMap:
                     first = lid not in tile.planes
                     plane = self._plane(tile, lid, target.fresh)
                     target.fresh = None
-                    age = self._decay_for_write(tile, lid, stamp, first, work)
-                    added = patch if age == 1.0 else self._aged(patch, age, work)
+                    half_life = self.half_life(lid)
+                    age = 1.0 if half_life is None else forget.before_write(
+                        tile, lid, half_life, stamp, first, work)
+                    added = patch if age == 1.0 else forget.aged(patch, age, work)
                     logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], added, self.limits)
                     tile.version = self.tick()
                     tile.stamp = max(tile.stamp, stamp)
