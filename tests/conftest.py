@@ -172,3 +172,18 @@ def procs() -> Iterator[list[ServerProcess]]:
         if p.proc.poll() is None:
             p.proc.kill()
             p.proc.wait(10)
+
+
+def spy_mosaics(tiled: Any) -> list[tuple[int, ...]]:
+    """The shapes of the mosaics ``tiled`` builds from now on (a list that fills as it reads):
+    which windows take the full path (a box at map resolution) and which are gathered."""
+    built: list[tuple[int, ...]] = []
+    original = tiled.mosaic
+
+    def spy(box: tuple[int, int, int, int], ids: list[int], now: float | None = None) -> Any:
+        out = original(box, ids, now)
+        built.append(out.shape)
+        return out
+
+    tiled.mosaic = spy
+    return built

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -12,6 +11,7 @@ from sogm_service.core import footprint as fp
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
 from sogm_service.core.tiles import TiledMap
 from sogm_service.wire.limits import WORLD_EXTENT_M
+from tests.conftest import spy_mosaics
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
 anything = st.floats(allow_nan=True, allow_infinity=True)
@@ -72,16 +72,7 @@ def test_window_price_reads_what_mosaic_allocates() -> None:
     """The read box is the mosaic ``sample`` builds: record its shape through the map."""
     tiled = TiledMap("m", "map", TileLattice(0.05, 64))
     tiled.layer_id("a", create=True)
-    seen: list[tuple[int, ...]] = []
-    original = tiled.mosaic
-
-    def spy(box: tuple[int, int, int, int], ids: list[int],
-            now: float | None = None) -> np.ndarray:
-        out = original(box, ids, now)
-        seen.append(out.shape)
-        return out
-
-    tiled.mosaic = spy  # type: ignore[method-assign]
+    seen = spy_mosaics(tiled)
     # (a window 10x coarser than the map is gathered instead: tests/test_coarse_sampling.py)
     for args in [(1.3, -2.2, 0.4, 3.0, 2.0, 0.1), (0.0, 0.0, 0.0, 4.0, 4.0, 0.05)]:
         tiled.sample(window_geometry(*args), ["a"])

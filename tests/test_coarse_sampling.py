@@ -16,7 +16,7 @@ from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window
 from sogm_service.core.resample import INTERPOLATIONS, Interp, resample_stack
 from sogm_service.core.tiles import TiledMap
 from sogm_service.wire.errors import ServiceError
-from tests.conftest import ServerProcess, start_server, wait_processed
+from tests.conftest import ServerProcess, spy_mosaics, start_server, wait_processed
 
 LO, HI = logodds.clamp_limits()
 
@@ -148,16 +148,7 @@ def test_the_float32_mode_reproduces_opencv_on_a_fresh_probe() -> None:
 
 def test_sample_gathers_only_coarse_windows() -> None:
     tiled = random_map(1, False, tile=64)
-    built: list[tuple[int, ...]] = []
-    original = tiled.mosaic
-
-    def spy(box: tuple[int, int, int, int], ids: list[int],
-            now: float | None = None) -> np.ndarray:
-        out = original(box, ids, now)
-        built.append(out.shape)
-        return out
-
-    tiled.mosaic = spy  # type: ignore[method-assign]
+    built = spy_mosaics(tiled)
     coarse = window_geometry(1.0, -2.0, 0.4, 20.0, 20.0, 1.0)  # 20x coarser
     got = tiled.sample(coarse, ["a", "b"])
     assert built == []  # no box built

@@ -344,25 +344,22 @@ def test_table_encoding_equals_the_definition_for_every_int16(encoding: str) -> 
     np.testing.assert_array_equal(beyond, want[encoding][[0, -1]])
 
 
-@pytest.mark.parametrize("dtype", [np.int16, np.float32])
 @pytest.mark.parametrize("shape", [(3,), (4,), (1, 1), (1, 4), (4, 1), (2, 2), (7, 3), (2, 3, 4)])
-def test_bayes_update_matches_the_reference_for_any_layout(
-        shape: tuple[int, ...], dtype: type) -> None:
+def test_bayes_update_matches_the_reference_for_any_layout(shape: tuple[int, ...]) -> None:
     # The 2-D fast path goes through OpenCV, which reads short 1-D arrays as scalars and
-    # refuses some strided outputs: every layout must still give clamp(state + rint(inc)).
+    # refuses some strided outputs: every layout must still give clamp(state + inc).
     rng = np.random.default_rng(sum(shape))
     limits = logodds.clamp_limits()
     big_state = rng.integers(-6900, 6900, (9, *shape)).astype(np.int16)
-    big_inc = (rng.integers(-6000, 6000, (9, *shape))
-               + (rng.random((9, *shape)) - 0.5 if dtype is np.float32 else 0)).astype(dtype)
+    big_inc = rng.integers(-6000, 6000, (9, *shape)).astype(np.int16)
     for view in (np.s_[0], np.s_[1::3]):  # contiguous, then strided along the first axis
         state, inc = big_state[view], big_inc[view]
-        expected = np.clip(state + np.rint(inc.astype(np.float64)), *limits).astype(np.int16)
+        expected = np.clip(state.astype(np.int32) + inc, *limits).astype(np.int16)
         logodds.bayes_update(state, inc, limits)
         np.testing.assert_array_equal(big_state[view], expected)
     cols = big_state[0].reshape(-1)[::2]  # a strided 1-D view
     inc1 = big_inc[0].reshape(-1)[::2]
-    expected = np.clip(cols + np.rint(inc1.astype(np.float64)), *limits).astype(np.int16)
+    expected = np.clip(cols.astype(np.int32) + inc1, *limits).astype(np.int16)
     logodds.bayes_update(cols, inc1, limits)
     np.testing.assert_array_equal(big_state[0].reshape(-1)[::2], expected)
 

@@ -177,25 +177,23 @@ def increments(
     return lut[codes]
 
 
-def bayes_update(state: Fixed, inc: npt.NDArray, limits: tuple[int, int]) -> None:
+def bayes_update(state: Fixed, inc: Fixed, limits: tuple[int, int]) -> None:
     """Eq. 1 in log-odds, in place: ``state = clamp(state + inc)``.
 
-    ``state`` is int16, ``inc`` int16 or float32 (an interpolated patch: rounded half to even
-    while adding, in one pass) of the same shape; ``limits`` from :func:`clamp_limits`.
-    Cells with ``inc == 0`` (unknown) are unchanged because they were already inside the clamp.
+    ``state`` and ``inc`` are int16 of the same shape (a warped patch is rounded before it gets
+    here, :func:`sogm_service.core.resample.tile_patches`); ``limits`` from
+    :func:`clamp_limits`.  Cells with ``inc == 0`` (unknown) are unchanged because they were
+    already inside the clamp.
     """
     if state.ndim == 2 and state.strides[1] == state.itemsize:
         # |state + inc| <= 32000: OpenCV's saturating int16 add never saturates here, so it is
         # the exact sum; it is ~1.5x faster than numpy's on the strided views of an ISM (a
-        # tile's part of a wider ISM) and rounds float patches in the same pass.  OpenCV writes
-        # views with contiguous rows in place; anything it had to copy is copied back.  (Only 2-D:
-        # OpenCV reads a 1-D array of up to 4 values as a scalar.)
-        out = cv2.add(state, inc, dst=state,
-                      dtype=cv2.CV_16S if inc.dtype == np.float32 else -1)
+        # tile's part of a wider ISM).  OpenCV writes views with contiguous rows in place;
+        # anything it had to copy is copied back.  (Only 2-D: OpenCV reads a 1-D array of up
+        # to 4 values as a scalar.)
+        out = cv2.add(state, inc, dst=state)
         if out is not state:
             np.copyto(state, out)
-    elif inc.dtype == np.float32:
-        np.add(state, np.rint(inc), out=state, casting="unsafe")
     else:
         np.add(state, inc, out=state)
     # int16 bounds: with Python ints numpy checks their range on every call (~1.3 us a tile).

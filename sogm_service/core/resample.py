@@ -329,8 +329,6 @@ def _warp_block(src: npt.NDArray, m: npt.NDArray[np.float64], out: npt.NDArray,
     return done
 
 
-def informative(patch: npt.NDArray) -> bool:
-    """Whether adding ``patch`` changes anything (float patches round half to even)."""
-    if patch.dtype == np.float32:
-        return bool((np.abs(patch) > 0.5).any())
+def informative(patch: npt.NDArray[np.int16]) -> bool:
+    """Whether adding ``patch`` changes anything."""
     return bool(patch.any())

@@ -304,9 +304,11 @@ class TiledMap:
         # work memory, then every tile.
         parts = list(tile_patches(inc, geometry, self.lattice, interp, owned,
                                   buffers=scratch.reset().take))
-        forgets = bool(self._forget) and self._forget.half_life(layer) is not None
-        work = forget.decay_work.ensure(self.tile_size) if forgets else None
-        targets = self._acquire(parts, self._layer_index.get(layer))
+        known = self._layer_index.get(layer)
+        half_life = self.half_life(known) if known is not None \
+            else self._forget.half_life(layer)  # a new layer: its rule, once
+        work = forget.decay_work.ensure(self.tile_size) if half_life is not None else None
+        targets = self._acquire(parts, known)
         try:  # phase 2: nothing here can fail (see the docstring)
             lid = self.layer_id(layer, create=True)
             self.advance_clock(stamp)
