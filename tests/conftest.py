@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
-from sogm_service.service.client import MapClient
-from sogm_service.service.session import free_tcp_endpoint, wait_listening
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import free_tcp_endpoint, wait_listening
 
 
 @dataclass

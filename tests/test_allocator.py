@@ -11,7 +11,7 @@ import pytest
 
 glibc = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
 
-PROBE = ("import sys; from sogm_service.service.allocator import keep_large_allocations; "
+PROBE = ("import sys; from sogm_service.service.server.allocator import keep_large_allocations; "
          "print(keep_large_allocations())")
 
 

@@ -20,18 +20,18 @@ from typing import Any
 import numpy as np
 import pytest
 
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import free_tcp_endpoint, loopback_settings, open_session
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.rendezvous import Ownership
-from sogm_service.core.tiles import TiledMap
-from sogm_service.core.tiletypes import Mark, TileIndex
-from sogm_service.service.checkpoints import Checkpointer
-from sogm_service.service.client import MapClient
-from sogm_service.service.cluster import Cluster
+from sogm_service.core.map.rendezvous import Ownership
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.core.map.tiletypes import Mark, TileIndex
+from sogm_service.service.cluster.cluster import Cluster
+from sogm_service.service.cluster.handover import replay_plan
 from sogm_service.service.config import ServiceConfig
-from sogm_service.service.fusers import FuseJob, FuseWorkers
-from sogm_service.service.handover import replay_plan
-from sogm_service.service.session import free_tcp_endpoint, loopback_settings, open_session
-from sogm_service.service.stats import Stats
+from sogm_service.service.server.checkpoints import Checkpointer
+from sogm_service.service.server.fusers import FuseJob, FuseWorkers
+from sogm_service.service.server.stats import Stats
 from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
 from sogm_service.store.format import (
     MAX_APPLIED,
@@ -441,7 +441,7 @@ def test_a_sent_tile_carries_stamp_decay_and_marks_and_a_wrong_one_is_refused() 
     """What replicas and cluster members send each other (``TileFiles``): the receiver gets
     the sender's stamp, decay stamps and marks; a tile answered for another index, or
     damaged, is refused and changes nothing."""
-    from sogm_service.service.replication import TileFiles
+    from sogm_service.service.cluster.replication import TileFiles
     from sogm_service.wire.errors import TileFormatError
 
     config = ServiceConfig.model_validate({"map": {"resolution": 0.1, "tile_size": 32,

@@ -7,9 +7,9 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sogm_service.core import footprint as fp
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.map import footprint as fp
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.wire.limits import WORLD_EXTENT_M
 from tests.conftest import spy_mosaics
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sogm_service.client.mapclient import MapClient
 from sogm_service.core.geometry import Pose2D
-from sogm_service.service.client import MapClient
 from sogm_service.wire import codec
 from sogm_service.wire.errors import ISM_CODES, POSE_CODES
 from sogm_service.wire.messages import IsmMessage, PoseModel

@@ -11,11 +11,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from sogm_service.client.mapclient import MapClient
 from sogm_service.core.geometry import Pose2D
-from sogm_service.service.admission import Admission
-from sogm_service.service.client import MapClient
 from sogm_service.service.config import LimitSettings, ServiceConfig
-from sogm_service.service.stats import Stats
+from sogm_service.service.server.admission import Admission
+from sogm_service.service.server.stats import Stats
 from sogm_service.wire import codec
 from sogm_service.wire.errors import QUERY_CODES, BusyError, ServiceError
 from sogm_service.wire.messages import ErrorReply
@@ -140,7 +140,7 @@ def test_heavy_queries_beyond_the_bound_are_busy_with_a_retry_hint() -> None:
 
 
 def test_busy_travels_with_its_hint_and_old_error_replies_still_decode() -> None:
-    from sogm_service.service.client import _service_error
+    from sogm_service.client.mapclient import _service_error
 
     exc = _service_error(codec.encode(ErrorReply(code="busy", message="m", retry_after_s=0.5)))
     assert exc.code == "busy" and exc.retry_after_s == 0.5

@@ -13,11 +13,11 @@ import pytest
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
-from sogm_service.service.admission import Admission
-from sogm_service.service.checkpoints import Checkpointer
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
-from sogm_service.service.stats import Stats
+from sogm_service.service.server.admission import Admission
+from sogm_service.service.server.checkpoints import Checkpointer
+from sogm_service.service.server.stats import Stats
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.writer import TileWriter
 from sogm_service.wire.errors import IsmRejectedError

@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 import zenoh
 
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import free_tcp_endpoint, loopback_settings, open_session
 from sogm_service.core.geometry import Pose2D
-from sogm_service.core.rendezvous import Ownership, owners_of, ranking
-from sogm_service.service.client import MapClient
-from sogm_service.service.fusers import FuseJob
-from sogm_service.service.handover import replay_plan
-from sogm_service.service.session import free_tcp_endpoint, loopback_settings, open_session
+from sogm_service.core.map.rendezvous import Ownership, owners_of, ranking
+from sogm_service.service.cluster.handover import replay_plan
+from sogm_service.service.server.fusers import FuseJob
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError
 from sogm_service.wire.keys import MapKeys

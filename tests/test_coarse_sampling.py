@@ -10,11 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service.core import footprint as fp
-from sogm_service.core import gather, logodds
+from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
+from sogm_service.core.map import footprint as fp
+from sogm_service.core.map import gather
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.resample import INTERPOLATIONS, Interp, resample_stack
-from sogm_service.core.tiles import TiledMap
 from sogm_service.wire.errors import ServiceError
 from tests.conftest import ServerProcess, spy_mosaics, start_server, wait_processed
 

@@ -25,9 +25,9 @@ from sogm_service.client import (
     Pose2D,
     ServiceError,
 )
-from sogm_service.core.numba_cache import choose_cache_dir
+from sogm_service.client.session import free_tcp_endpoint
+from sogm_service.core.sevds.numba_cache import choose_cache_dir
 from sogm_service.service.config import ConfigError, load_config
-from sogm_service.service.session import free_tcp_endpoint
 from sogm_service.wire.messages import RejectionReport
 from tests.conftest import ServerProcess, start_server, wait_until, write_config
 
@@ -115,7 +115,7 @@ def test_wait_fused_waits_for_every_ism_under_load(server: ServerProcess) -> Non
 
 
 def test_client_refuses_bad_grids_before_sending() -> None:
-    from sogm_service.service.client import build_ism
+    from sogm_service.client.mapclient import build_ism
 
     with pytest.raises(InvalidIsmError, match="2-D"):
         build_ism(np.zeros((10, 3, 2), np.uint8), resolution=0.1)
@@ -221,7 +221,7 @@ def test_cli_version_help_and_log_options() -> None:
 
 
 def test_serve_honours_the_configs_log_level(tmp_path: Path) -> None:
-    from sogm_service.service.session import wait_listening
+    from sogm_service.client.session import wait_listening
 
     endpoint = free_tcp_endpoint()
     config = tmp_path / "quiet.toml"
@@ -276,7 +276,7 @@ def test_logging_writes_to_the_stderr_of_the_moment() -> None:
 def test_a_stopped_server_leaves_no_warm_up_child(tmp_path: Path) -> None:
     import signal
 
-    from sogm_service.service.server import MapServer
+    from sogm_service.service.server.server import MapServer
 
     config = load_config(write_config(tmp_path / "s.toml",
                                       {"zenoh": {"listen": [free_tcp_endpoint()]}}))
@@ -310,9 +310,9 @@ def test_numba_cache_dir_for_a_read_only_install(tmp_path: Path) -> None:
 def test_read_only_install_imports_and_runs_the_kernels(tmp_path: Path) -> None:
     """In a process whose package directory cannot be written and whose home is unusable,
     the kernels still load (the decorator used to fail: no locator available)."""
-    code = ("import sogm_service.core.numba_cache as m, pathlib, os;"
+    code = ("import sogm_service.core.sevds.numba_cache as m, pathlib, os;"
             "m._HERE = pathlib.Path('/proc/self');"
-            "from sogm_service.core.sevds import warm_up; warm_up();"
+            "from sogm_service.core.sevds.segment import warm_up; warm_up();"
             "print(os.environ['NUMBA_CACHE_DIR'])")
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env.update(HOME="/proc/self/nohome", XDG_CACHE_HOME=str(tmp_path / "xdg"))

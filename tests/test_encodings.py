@@ -16,7 +16,7 @@ import pytest
 from sogm_service.adapters.laser import encode_prob_u8_v2
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.wire import codec
 from sogm_service.wire.codec import DecodeError
 from sogm_service.wire.messages import IsmMessage

@@ -9,10 +9,10 @@ import pytest
 
 from sogm_service.adapters.carmen import read_carmen
 from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.core.matching import MatchParams, match_window
+from sogm_service.core.matching.match import MatchParams, match_window
 from sogm_service.eval import matching as em
 from sogm_service.service.config import MatchingSettings
-from sogm_service.service.matcher import match_params
+from sogm_service.service.server.matcher import match_params
 
 INTEL = em.INTEL_LOG
 needs_intel = pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")

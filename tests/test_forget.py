@@ -1,6 +1,6 @@
 """Layers that forget (issue 19, item 6): decay toward unknown with a half-life, lazily per tile.
 
-Expected values are computed here from the rule (:mod:`sogm_service.core.forget`): a read at
+Expected values are computed here from the rule (:mod:`sogm_service.core.map.forget`): a read at
 ``now`` gives ``trunc(l * 0.5 ** ((now - t_d) / h))`` (float64, toward zero); a write at ``t``
 first decays the tile's layer in place by ``0.5 ** ((t - t_d) / h)`` when ``t - t_d >= h / 32``.
 """
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from sogm_service.core import forget
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.map import forget
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.format import (
@@ -347,7 +347,7 @@ def test_config_takes_half_lives_per_layer_pattern() -> None:
 
 # -- the service: config, queries and a restart ---------------------------------------------
 def test_server_forgets_by_stamps_and_across_a_restart(tmp_path: Path) -> None:
-    from sogm_service.service.client import MapClient
+    from sogm_service.client.mapclient import MapClient
     from tests.conftest import start_server, wait_processed
 
     sections = {"map": {"resolution": 0.5, "tile_size": 16, "forget": {"*/people": H}},

@@ -12,8 +12,8 @@ import pytest
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
-from sogm_service.service.fusers import FuseJob, FuseWorkers
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.service.server.fusers import FuseJob, FuseWorkers
 from sogm_service.wire import codec
 from sogm_service.wire.messages import IsmMessage, PoseModel
 from tests.conftest import start_server, wait_processed

@@ -24,8 +24,8 @@ from sogm_service.adapters.carmen import LaserScan, read_carmen
 from sogm_service.adapters.laser import laser_ism
 from sogm_service.bench.matching import benchmark_match, synthetic_floorplan
 from sogm_service.core import logodds
-from sogm_service.core import matching as mt
 from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.matching import match as mt
 from sogm_service.core.resample import resample_logodds
 
 RES = 0.05

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from sogm_service.bench.matching import synthetic_floorplan
+from sogm_service.client.mapclient import MapClient
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
-from sogm_service.service.client import MapClient
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.wire import codec
 from sogm_service.wire.messages import MatchReport
 from tests.conftest import start_server, wait_processed, wait_until

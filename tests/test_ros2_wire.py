@@ -358,8 +358,8 @@ def test_tf_chain_composes_map_odom_base_link() -> None:
 # -- the published region and snapshot -----------------------------------------------------
 def test_publish_region_and_snapshot() -> None:
     from sogm_service.adapters.ros2.views import map_snapshot, publish_region
-    from sogm_service.core.tiles import TiledMap, TileLattice
-    from sogm_service.service import pipeline
+    from sogm_service.core.map.tiles import TiledMap, TileLattice
+    from sogm_service.service.server import pipeline
     from sogm_service.wire.messages import IsmMessage, PoseModel
 
     tiled = TiledMap("m", "map", TileLattice(0.05, 64))

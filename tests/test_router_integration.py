@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from sogm_service.service.client import MapClient
-from sogm_service.service.session import free_tcp_endpoint
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import free_tcp_endpoint
 from tests.conftest import start_server, wait_processed, wait_until
 
 pytestmark = pytest.mark.integration

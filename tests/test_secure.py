@@ -40,8 +40,8 @@ from cryptography.x509.oid import NameOID
 
 from sogm_service.apps import certs
 from sogm_service.apps.certs import Pki, init_pki, load_ca, make_ca, make_identity
-from sogm_service.service.client import MapClient
-from sogm_service.service.session import free_tcp_endpoint, wait_listening
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import free_tcp_endpoint, wait_listening
 from sogm_service.wire import codec
 from sogm_service.wire.messages import GridReply, PoseMessage
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sogm_service.bench.sevds import benchmark_sevds_vs_seeds
-from sogm_service.core.sevds import (
+from sogm_service.core.sevds.segment import (
     SevdsParams,
     bin_centres,
     histogram_variance,

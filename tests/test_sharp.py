@@ -20,8 +20,8 @@ from sogm_service.adapters.laser import encode_occupancy_i8, laser_ism
 from sogm_service.adapters.laser_lattice import laser_ism_on_lattice, scan_ism_on_lattice
 from sogm_service.core import logodds
 from sogm_service.core.geometry import Pose2D, TileLattice
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.resample import lattice_offset, tile_patches
-from sogm_service.core.tiles import TiledMap
 from sogm_service.sim.sensors import TiltedLaser
 from tests.raycast_reference import Comparison, compare, reference_map
 

@@ -9,8 +9,8 @@ import pytest
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.core.sevds import SevdsParams
-from sogm_service.core.supercells import adjacency, extract_supercells, supercell_graph
+from sogm_service.core.sevds.segment import SevdsParams
+from sogm_service.core.sevds.supercells import adjacency, extract_supercells, supercell_graph
 
 LABELS = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 2, 2]])
 

@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-import sogm_service.core.tiles as tiles_module
+import sogm_service.core.map.tiles as tiles_module
 from sogm_service.core import resample
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap, TileSnapshot
+from sogm_service.core.map.tiles import TiledMap, TileSnapshot
 
 RES, T = 0.05, 16
 SPAN = RES * T

@@ -11,12 +11,12 @@ from hypothesis import strategies as st
 
 from sogm_service.core.geodesy import GeoPoint, LocalTangentPlane, radii_of_curvature
 from sogm_service.core.geometry import TileLattice
-from sogm_service.core.tilemanager import (
+from sogm_service.core.map.tilemanager import (
     TileManager,
     TileSwitchEvent,
     hysteresis_from_fraction,
 )
-from sogm_service.core.tiletypes import tile_name, tile_token
+from sogm_service.core.map.tiletypes import tile_name, tile_token
 from sogm_service.wire.messages import GeodeticFix
 
 LATTICE = TileLattice(0.05, 256)  # span 12.8 m

@@ -14,7 +14,7 @@ import pytest
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.map.tiles import TiledMap
 from tests.oracles import sample_bilinear
 
 RES = 0.1

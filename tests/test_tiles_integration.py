@@ -12,7 +12,7 @@ import pytest
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.wire.messages import TileEvent
 from tests.conftest import start_server, wait_processed, wait_until

@@ -18,7 +18,7 @@ import pytest
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeoPoint
 from sogm_service.core.geometry import TileLattice
-from sogm_service.core.tilemanager import TileManager
+from sogm_service.core.map.tilemanager import TileManager
 from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
 from sogm_service.store.format import (
     MAGIC,

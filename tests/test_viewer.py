@@ -37,9 +37,9 @@ from sogm_service.apps.viewer.tiles import (
     parse_view,
     visible_tiles,
 )
+from sogm_service.client.mapclient import MapClient, ism_footprint
+from sogm_service.client.session import free_tcp_endpoint, wait_listening
 from sogm_service.core.geometry import Pose2D
-from sogm_service.service.client import MapClient, ism_footprint
-from sogm_service.service.session import free_tcp_endpoint, wait_listening
 from tests.conftest import ServerProcess, start_server, wait_until
 
 CHROMIUM = Path("/usr/bin/chromium")

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from sogm_service.service.session import free_tcp_endpoint, wait_listening
+from sogm_service.client.session import free_tcp_endpoint, wait_listening
 
 
 def test_returns_once_something_listens() -> None:

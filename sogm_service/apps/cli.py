@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from sogm_service.apps.logs import setup_logging
-from sogm_service.service.session import DEFAULT_ENDPOINT
+from sogm_service.client.session import DEFAULT_ENDPOINT
 from sogm_service.wire.errors import ClientError, SogmError
 
 EXIT_USAGE = 2
@@ -339,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Processes that fuse or sample for long: their large temporaries are kept on the heap
-# (:mod:`sogm_service.service.allocator`), which the short-lived commands do not need.
+# (:mod:`sogm_service.service.server.allocator`), which the short-lived commands do not need.
 _LONG_RUNNING = frozenset({"serve", "demo", "replay", "bench"})
 
 
@@ -388,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     at, command = _command_of(argv)
     if command in _LONG_RUNNING:
-        from sogm_service.service.allocator import keep_large_allocations
+        from sogm_service.service.server.allocator import keep_large_allocations
 
         keep_large_allocations()
     try:
@@ -436,8 +436,8 @@ def _fail(command: str, message: str) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
+    from sogm_service.client.session import check_endpoint
     from sogm_service.service.config import load_config
-    from sogm_service.service.session import check_endpoint
 
     config = load_config(args.config)  # ConfigError: one line (with the fields), exit 2
     if getattr(args, "log_level", None) is None:  # the config's level unless told
@@ -476,7 +476,7 @@ def _serve(args: argparse.Namespace) -> int:
         except ValidationError as exc:
             return _fail("serve", f"--ros2-domain: {exc.errors()[0]['msg']}")
         config = config.model_copy(update={"ros2": section})
-    from sogm_service.service.server import MapServer
+    from sogm_service.service.server.server import MapServer
     from sogm_service.wire.errors import StoreLockedError
 
     stop = stop_on_signal()
@@ -509,7 +509,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace) -> Any:
-    from sogm_service.service.client import DEFAULT_TIMEOUT_S, MapClient
+    from sogm_service.client.mapclient import DEFAULT_TIMEOUT_S, MapClient
 
     if args.zenoh_config is not None and not args.zenoh_config.is_file():
         raise _usage(f"--zenoh-config {args.zenoh_config}: no such file")
@@ -654,8 +654,8 @@ def _write_grid_outputs(result: Any, png: Path | None, npy: Path | None) -> list
 def _publish_ism(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from sogm_service.client.mapclient import build_ism
     from sogm_service.core.geometry import Pose2D
-    from sogm_service.service.client import build_ism
 
     data = _read_grid(args.file)
     yaw = _yaw(args)
@@ -708,8 +708,8 @@ def _schemas(args: argparse.Namespace) -> int:
 
 
 def _router(args: argparse.Namespace) -> int:
+    from sogm_service.client.session import check_endpoint, open_session
     from sogm_service.service.config import ZenohSettings
-    from sogm_service.service.session import check_endpoint, open_session
 
     for endpoint in args.listen or []:
         why = check_endpoint(endpoint)

@@ -104,9 +104,9 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     SIGINT/SIGTERM.  ``zenoh_config``: no embedded server; the robots and the demo's client
     open their sessions from that file (as it is) and drive a running server's map
     ``map_name``."""
-    from sogm_service.service.client import MapClient
-    from sogm_service.service.server import MapServer
-    from sogm_service.service.session import free_tcp_endpoint
+    from sogm_service.client.mapclient import MapClient
+    from sogm_service.client.session import free_tcp_endpoint
+    from sogm_service.service.server.server import MapServer
     from sogm_service.sim import tabletop_world, warehouse_world
 
     started = time.monotonic()
@@ -161,7 +161,7 @@ class _Remote:
     "idle" through a client of its own, nothing to stop."""
 
     def __init__(self, map_name: str, zenoh_config: Path) -> None:
-        from sogm_service.service.client import MapClient
+        from sogm_service.client.mapclient import MapClient
 
         self._client = MapClient.connect(map_name=map_name, zenoh_config=zenoh_config,
                                          timeout=10.0)

@@ -135,7 +135,7 @@ def replay_rosbag(path: Path, *, endpoint: str | None = None, map_name: str = "d
         raise NoScansError(f"no localised LaserScan and no OccupancyGrid to replay ({stats})")
 
     def publish(ep: str) -> None:
-        from sogm_service.service.client import MapClient
+        from sogm_service.client.mapclient import MapClient
         from sogm_service.sim.fleet import replay_scans
         from sogm_service.wire import codec
 
@@ -157,9 +157,9 @@ def _with_server(endpoint: str | None, map_name: str, resolution: float,
     if endpoint is not None:
         result: ReplayResult = run(endpoint)
         return result
+    from sogm_service.client.session import free_tcp_endpoint
     from sogm_service.service.config import ServiceConfig
-    from sogm_service.service.server import MapServer
-    from sogm_service.service.session import free_tcp_endpoint
+    from sogm_service.service.server.server import MapServer
 
     local = free_tcp_endpoint()
     config = ServiceConfig.model_validate({"map": {"name": map_name, "resolution": resolution},
@@ -175,7 +175,7 @@ def _with_server(endpoint: str | None, map_name: str, resolution: float,
 def _collect(endpoint: str, publish: Any, n: int, scans: list[Any], grids: list[Any],
              map_name: str, resolution: float, robot: str, stats: Any) -> ReplayResult:
     """Publish, wait until the server handled every ISM, and read back the map's extent."""
-    from sogm_service.service.client import MapClient
+    from sogm_service.client.mapclient import MapClient
 
     publish(endpoint)
     with MapClient.connect(endpoint, map_name=map_name, timeout=30.0,
@@ -210,9 +210,9 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
                            + stats.summary())
     if endpoint is not None:
         return _replay_into(scans, endpoint, map_name, resolution, speed, robot, stats, grid)
+    from sogm_service.client.session import free_tcp_endpoint
     from sogm_service.service.config import ServiceConfig
-    from sogm_service.service.server import MapServer
-    from sogm_service.service.session import free_tcp_endpoint
+    from sogm_service.service.server.server import MapServer
 
     endpoint = free_tcp_endpoint()
     config = ServiceConfig.model_validate({"map": {"name": map_name, "resolution": resolution},
@@ -227,7 +227,7 @@ def replay_carmen(path: Path, *, endpoint: str | None = None, map_name: str = "d
 
 def _replay_into(scans: list[Any], endpoint: str, map_name: str, resolution: float,
                  speed: float, robot: str, stats: Any, grid: str = "lattice") -> ReplayResult:
-    from sogm_service.service.client import MapClient
+    from sogm_service.client.mapclient import MapClient
     from sogm_service.sim.fleet import replay_scans
 
     replay_scans(scans, endpoint, robot=robot, resolution=resolution, speed=speed, grid=grid,

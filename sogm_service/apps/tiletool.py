@@ -39,7 +39,7 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
-from sogm_service.core.tiletypes import TileIndex
+from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.store.directory import DirectoryStore, lock_directory
 from sogm_service.store.format import (
     SUFFIX,

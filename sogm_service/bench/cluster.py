@@ -24,11 +24,11 @@ from sogm_service.bench import transport
 from sogm_service.bench.compute import synthetic_ism
 from sogm_service.bench.core import Row, best_time, median, percentile
 from sogm_service.bench.zbench import PY, WINDOW, Proc
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import open_session, wait_listening
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.rendezvous import owners_of
-from sogm_service.service.client import MapClient
-from sogm_service.service.pipeline import ism_geometry
-from sogm_service.service.session import open_session, wait_listening
+from sogm_service.core.map.rendezvous import owners_of
+from sogm_service.service.server.pipeline import ism_geometry
 from sogm_service.wire import codec
 from sogm_service.wire.keys import MapKeys
 from sogm_service.wire.messages import IsmMessage, PoseModel

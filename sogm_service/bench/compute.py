@@ -11,8 +11,8 @@ import numpy.typing as npt
 
 from sogm_service.bench.core import Row, interleaved, median, time_row, unavailable
 from sogm_service.core.geometry import Pose2D, TileLattice
-from sogm_service.core.tiles import TiledMap
-from sogm_service.service import pipeline as ingest
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.service.server import pipeline as ingest
 from sogm_service.wire.messages import IsmMessage, PoseModel
 
 MAP_RES = 0.05

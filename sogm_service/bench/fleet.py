@@ -27,7 +27,7 @@ from sogm_service.bench.zbench import (
     wait_fused,
     window,
 )
-from sogm_service.service.client import MapClient
+from sogm_service.client.mapclient import MapClient
 
 QUERY_HZ = 10.0
 

@@ -15,7 +15,7 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import Pose2D
-from sogm_service.core.matching import MatchParams, match_ism
+from sogm_service.core.matching.match import MatchParams, match_ism
 
 
 def synthetic_floorplan(
@@ -90,11 +90,11 @@ def _furnish(
 
 
 def benchmark_match(size: int = 256, repeats: int = 10, seed: int = 0) -> dict[str, float]:
-    """Time :func:`~sogm_service.core.matching.match_ism` for one ``size x size`` ISM
+    """Time :func:`~sogm_service.core.matching.match.match_ism` for one ``size x size`` ISM
     misaligned by a few cells and degrees.
 
     For the bench suite (no printing): the ISM is cut from a synthetic floor plan, the window
-    is :func:`~sogm_service.core.matching.match_window`'s margin around the claimed pose.
+    is :func:`~sogm_service.core.matching.match.match_window`'s margin around the claimed pose.
     """
     params = MatchParams()
     margin = params.window_margin(size, size)

@@ -28,7 +28,7 @@ from typing import Any
 import zenoh
 
 from sogm_service.bench.transport import Transport
-from sogm_service.service.session import open_session
+from sogm_service.client.session import open_session
 from sogm_service.wire import codec
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.bench.core import best_time
-from sogm_service.core.sevds import SevdsParams, sevds
+from sogm_service.core.sevds.segment import SevdsParams, sevds
 
 
 def synthetic_stack(layers: int, height: int = 256, width: int = 256,

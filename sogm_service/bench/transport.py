@@ -26,8 +26,8 @@ from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 
+from sogm_service.client.session import free_tcp_endpoint, loopback_settings
 from sogm_service.service.config import ZenohSettings
-from sogm_service.service.session import free_tcp_endpoint, loopback_settings
 
 DEFAULT_ROBOT = "bench"
 

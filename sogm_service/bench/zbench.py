@@ -24,10 +24,10 @@ import zenoh
 from sogm_service.bench import transport
 from sogm_service.bench.compute import MAP_RES, synthetic_ism
 from sogm_service.bench.core import Row, interleaved, median, percentile
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import open_session, wait_listening
 from sogm_service.core.geometry import Pose2D
-from sogm_service.service import pipeline as ingest
-from sogm_service.service.client import MapClient
-from sogm_service.service.session import open_session, wait_listening
+from sogm_service.service.server import pipeline as ingest
 from sogm_service.wire.messages import StatsReply
 
 PY = sys.executable
@@ -201,10 +201,12 @@ def submap(quick: bool) -> Row:
 
 def _breakdown_in_child(repeats: int) -> dict[str, float]:
     """:func:`submap_breakdown` in a fresh process with the server's allocator settings
-    (:mod:`sogm_service.service.allocator`), not whatever state the bench process has reached."""
+    (:mod:`~sogm_service.service.server.allocator`), not the state the bench process has
+    reached."""
     import json
 
-    code = ("import json; from sogm_service.service.allocator import keep_large_allocations; "
+    code = ("import json; "
+            "from sogm_service.service.server.allocator import keep_large_allocations; "
             "keep_large_allocations(); from sogm_service.bench.zbench import submap_breakdown; "
             f"print(json.dumps(submap_breakdown({repeats})))")
     out = subprocess.run([PY, "-c", code], capture_output=True, text=True, check=True,
@@ -219,7 +221,7 @@ def submap_breakdown(repeats: int) -> dict[str, float]:
     from sogm_service.bench.compute import fresh_map, ism_message
     from sogm_service.core import logodds
     from sogm_service.core.geometry import window_geometry
-    from sogm_service.service import queries
+    from sogm_service.service.server import queries
     from sogm_service.wire import codec
     from sogm_service.wire.messages import SubmapRequest
 

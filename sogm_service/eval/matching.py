@@ -43,7 +43,8 @@ from sogm_service.adapters.carmen import LaserScan, read_carmen
 from sogm_service.adapters.laser import laser_ism
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.matching import (
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.core.matching.match import (
     MatchParams,
     MatchReason,
     corrected_geometry,
@@ -51,7 +52,6 @@ from sogm_service.core.matching import (
     match_window,
     prior_matrix,
 )
-from sogm_service.core.tiles import TiledMap
 
 INTEL_LOG = Path("/work/shared/data/carmen/intel-corrected.log.gz")
 LAYER = "obstacle"
@@ -189,7 +189,7 @@ def evaluate(scans: Sequence[LaserScan], variants: dict[str, MatchParams], *,
 
 def _trial(tiled: TiledMap, index: int, variant: str, truth: Pose2D, claimed: Pose2D,
            g: GridGeometry, inc: np.ndarray, params: MatchParams) -> Trial | None:
-    """What ``sogm_service.service.pipeline.align`` does, with the core functions."""
+    """What ``sogm_service.service.server.pipeline.align`` does, with the core functions."""
     window = match_window(g, params)
     if LAYER not in tiled.layers:
         return None

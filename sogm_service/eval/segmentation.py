@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.core.sevds import SevdsParams, sevds
+from sogm_service.core.sevds.segment import SevdsParams, sevds
 from sogm_service.eval import metrics
 from sogm_service.eval.figures import metric_plots, segmentation_figure
 from sogm_service.eval.metrics import METRICS

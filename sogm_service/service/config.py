@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from sogm_service.client.session import ZenohSettings
 from sogm_service.core import logodds
 from sogm_service.core.resample import Interp
 from sogm_service.wire import limits
@@ -41,7 +42,7 @@ class MapSettings(_Section):
     eps0: Annotated[float, Field(ge=logodds.MIN_EPS0, lt=0.5)] = logodds.DEFAULT_EPS0
     datum: GeodeticFix | None = None
     # Layers that forget (issue 19): layer name or fnmatch pattern -> half-life (s, of the
-    # ISM stamps); decay applied lazily per tile (sogm_service.core.forget).
+    # ISM stamps); decay applied lazily per tile (sogm_service.core.map.forget).
     forget: dict[Annotated[str, Field(min_length=1, max_length=256)],
                  Annotated[float, Field(gt=0)]] = {}
 
@@ -114,7 +115,7 @@ class LimitSettings(_Section):
 
 
 class Ros2Settings(_Section):
-    """ROS 2 over rmw_zenoh (:mod:`sogm_service.service.ros2`); needs the ``ros2`` extra."""
+    """ROS 2 over rmw_zenoh (:mod:`sogm_service.service.ros2.link`); needs the ``ros2`` extra."""
 
     enabled: bool = False
     domain: Annotated[int, Field(ge=0, le=232)] = 0  # ROS_DOMAIN_ID
@@ -140,7 +141,7 @@ class Ros2Settings(_Section):
 
 
 class ClusterSettings(_Section):
-    """One map over several servers (:mod:`sogm_service.service.cluster`)."""
+    """One map over several servers (:mod:`sogm_service.service.cluster.cluster`)."""
 
     enabled: bool = False
     replicas: Annotated[int, Field(ge=1, le=16)] = 2  # owners per tile; 1: no replication
@@ -153,14 +154,6 @@ class ClusterSettings(_Section):
     # A replica compares each tile that changed and then stayed quiet this long with its
     # primary's and adopts the primary's copy when they differ (0: never).
     reconcile_interval_s: Annotated[float, Field(ge=0, le=3600)] = 2.0
-
-
-class ZenohSettings(_Section):
-    mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = []
-    connect: list[str] = []
-    config_file: Annotated[Path, Field(strict=False)] | None = None
-    multicast_scouting: bool = False
 
 
 class ServiceConfig(_Section):

@@ -3,7 +3,7 @@ ISMs and poses.
 
 Each robot of :func:`sogm_service.sim.robots.simulate` connects its own Zenoh session (client
 mode, multicast scouting off, to the map server's endpoint, e.g. ``tcp/127.0.0.1:7447``) through
-:class:`sogm_service.service.client.MapClient` and publishes, per step,
+:class:`sogm_service.client.mapclient.MapClient` and publishes, per step,
 
 * its reported pose on ``pose/<robot>`` (:class:`~sogm_service.wire.messages.PoseMessage`);
 * each sensor ISM on ``ism/<robot>/<sensor>/<class>``
@@ -35,8 +35,8 @@ import numpy as np
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.adapters.laser import encode_occupancy_i8, encode_prob_u8, encode_prob_u8_v2
 from sogm_service.adapters.laser_lattice import ISM_GRIDS, scan_ism_on_lattice
+from sogm_service.client.mapclient import MapClient
 from sogm_service.core.geometry import Pose2D
-from sogm_service.service.client import MapClient
 from sogm_service.sim.robots import SimStep, simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm
 from sogm_service.sim.worlds import World

@@ -2,7 +2,7 @@
 
 The same map as the server's, in one process: each ISM becomes fixed-point log-odds increments
 (:func:`sogm_service.core.logodds.increments`) and is fused by Eq. 1 into a
-:class:`~sogm_service.core.tiles.TiledMap` (biodds resampling by default, the paper's Eq. 5),
+:class:`~sogm_service.core.map.tiles.TiledMap` (biodds resampling by default, the paper's Eq. 5),
 read back on the world's grid.  Used by the paper's Section IV evaluation and by tests.
 """
 
@@ -16,8 +16,8 @@ import numpy.typing as npt
 from sogm_service.adapters.carmen import DEFAULT_USABLE_RANGE, LaserScan, scan_ism
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.resample import Interp
-from sogm_service.core.tiles import TiledMap
 from sogm_service.sim.robots import simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm, default_sensors
 from sogm_service.sim.worlds import World
@@ -29,7 +29,7 @@ def default_duration(world: World) -> float:
 
 
 class OfflineMap:
-    """The server's tiled map (:class:`~sogm_service.core.tiles.TiledMap`) in one process,
+    """The server's tiled map (:class:`~sogm_service.core.map.tiles.TiledMap`) in one process,
     read back on one grid: the layers in ``geometry``."""
 
     def __init__(self, geometry: GridGeometry, layers: Sequence[str],

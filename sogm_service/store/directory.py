@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Final
 
 from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
-from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex
+from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.format import (
     DEFAULT_LEVEL,
     SUFFIX,
@@ -225,7 +225,7 @@ class DirectoryStore:
         return None if got is None else got[1]
 
     def loader(self, i: int, j: int) -> LoaderResult | None:
-        """:meth:`load` in the shape of :data:`sogm_service.core.tiles.Loader`."""
+        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiles.Loader`."""
         tile = self.load(i, j)
         return None if tile is None else tile.as_loader_result()
 
@@ -253,7 +253,7 @@ class DirectoryStore:
               stamp: float, decay: dict[str, float] | None = None,
               applied: dict[str, Mark] | None = None) -> TileFileInfo:
         """Encode and atomically write one tile (synchronous; :class:`TileWriter` runs this).
-        ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.forget`); ``applied``:
+        ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.map.forget`); ``applied``:
         the tile's marks (``Tile.applied``)."""
         header = self.header_for(i, j, layers, stamp, decay, applied)
         return self._write_blob(header, tile_to_bytes(header, data, self.level))

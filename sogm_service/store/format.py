@@ -56,7 +56,7 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeoPoint, LocalTangentPlane
-from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex, tile_token
+from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex, tile_token
 from sogm_service.wire.errors import TileFormatError
 
 MAGIC: Final = b"SOGMTILE"
@@ -134,7 +134,7 @@ class StoredTile:
     data: Fixed
 
     def as_loader_result(self) -> LoaderResult:
-        """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.core.tiles.Loader`
+        """The ``(layers, stack, stamp)`` triple of :data:`sogm_service.core.map.tiles.Loader`
         (with the decay stamps as a fourth item when the tile has any, and the applied marks as
         a fifth when it has any)."""
         if self.header.applied:

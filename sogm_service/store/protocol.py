@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex
+from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.format import Expectation, Fixed, StoredTile, TileHeader
 
 
@@ -64,7 +64,7 @@ class TileStore(Protocol):
         ...
 
     def loader(self, i: int, j: int) -> LoaderResult | None:
-        """:meth:`load` in the shape of :data:`sogm_service.core.tiletypes.Loader`."""
+        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiletypes.Loader`."""
         ...
 
     def read_bytes(self, i: int, j: int) -> bytes | None:

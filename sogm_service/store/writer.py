@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from sogm_service.core.tiletypes import LoaderResult, Mark, TileIndex
+from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.format import Fixed, check_stack
 from sogm_service.store.protocol import TileStore
 

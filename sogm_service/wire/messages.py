@@ -24,8 +24,8 @@ from pydantic_core import PydanticCustomError
 
 from sogm_service.core.logodds import ENCODING_DTYPES, Encoding
 from sogm_service.core.resample import Interp
-from sogm_service.core.sevds import BOUNDS as _SEVDS_BOUNDS
-from sogm_service.core.sevds import Criterion, SevdsParams
+from sogm_service.core.sevds.segment import BOUNDS as _SEVDS_BOUNDS
+from sogm_service.core.sevds.segment import Criterion, SevdsParams
 from sogm_service.wire.limits import MAX_ISM_CELLS
 
 SCHEMA_VERSION = 2

@@ -7,7 +7,7 @@
 * :mod:`.convert`: OccupancyGrid <-> ISM, map window -> OccupancyGrid, poses and TF chains.
 
 The Zenoh side (subscriptions, advanced publishers, tokens, the GetMap queryable) is
-:mod:`sogm_service.service.ros2_bridge`.
+:mod:`sogm_service.service.ros2.bridge`.
 """
 
 from sogm_service.adapters.ros2.errors import REJECT_CODES, Ros2DecodeError

@@ -21,7 +21,7 @@ from sogm_service.adapters.ros2.cdr import OccupancyGridFields
 from sogm_service.adapters.ros2.convert import window_to_grid
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.core.tiles import TiledMap
+from sogm_service.core.map.tiles import TiledMap
 
 RegionMode = Literal["robots", "known"]
 

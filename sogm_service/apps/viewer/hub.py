@@ -1,6 +1,6 @@
 """The viewer's one Zenoh client of the map server, shared by every browser connected to it.
 
-One thread keeps the connection: it opens a :class:`~sogm_service.service.client.MapClient`
+One thread keeps the connection: it opens a :class:`~sogm_service.client.mapclient.MapClient`
 (retrying while the map server is away), subscribes to tile events, robot poses and ISM
 footprints, and polls ``info`` and ``stats`` every ``poll_s``.  Zenoh's client mode reconnects
 by itself when the server comes back on the same endpoint; if it has not after
@@ -33,11 +33,11 @@ import numpy as np
 
 from sogm_service.apps.render import UNKNOWN_BGR, dominant_class_image, probability_image
 from sogm_service.apps.viewer.tiles import Lattice, TileSpec
+from sogm_service.client.mapclient import IsmFootprint, MapClient
+from sogm_service.client.session import loopback_settings, open_session
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import LocalTangentPlane
-from sogm_service.service.client import IsmFootprint, MapClient
 from sogm_service.service.config import ZenohSettings
-from sogm_service.service.session import loopback_settings, open_session
 from sogm_service.wire.errors import ClientError
 from sogm_service.wire.messages import InfoReply, PoseMessage, StatsReply, TileEvent
 

@@ -1,0 +1,3 @@
+"""Several servers, one map: membership and tile ownership, handover, replication and gathered
+queries.
+"""

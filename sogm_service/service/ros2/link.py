@@ -1,0 +1,108 @@
+"""ROS 2 robots and tools on the map server, over rmw_zenoh's wire (``[ros2] enabled``).
+
+The :class:`~sogm_service.service.ros2.bridge.Ros2Bridge` speaks rmw_zenoh (CDR, attachments,
+liveliness tokens); this part wires it to the server: an ``OccupancyGrid`` ISM goes into the
+same ingestion queue as a native one (and from there through the same pipeline, limits,
+counters and rejection reasons), poses drive the fleet tracker, and a thread republishes the
+map every ``publish_period_s`` (the bridge sends only grids that changed).  Imported only when
+enabled: the ``ros2`` extra (rosbags, xxhash) is needed then and only then.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.service.config import ServiceConfig
+from sogm_service.service.ros2.bridge import Ros2Bridge, Ros2BridgeSettings
+from sogm_service.service.server.fleet import FleetTracker
+from sogm_service.service.server.ingest import IngestQueue
+from sogm_service.service.server.pipeline import IsmItem
+from sogm_service.service.server.stats import Rejections, Stats
+from sogm_service.wire.messages import IsmMessage
+
+log = logging.getLogger(__name__)
+
+
+def bridge_settings(config: ServiceConfig) -> Ros2BridgeSettings:
+    r = config.ros2
+    return Ros2BridgeSettings(
+        domain=r.domain, ism_prefix=r.ism_prefix, pose_topics=tuple(r.pose_topics),
+        odom_topics=tuple(r.odom_topics), tf_topics=tuple(r.tf_topics),
+        tf_static_topics=tuple(r.tf_static_topics), map_frame=config.map.frame,
+        robot_frame=r.robot_frame, humble=r.humble, topic_root=r.topic_root,
+        node_name=r.node_name, max_payload_bytes=config.limits.max_payload_bytes,
+        max_cells=config.limits.max_ism_cells, max_tilt=r.max_tilt_rad)
+
+
+class Ros2Link:
+    """The bridge, its callbacks into the server, and the map publication thread."""
+
+    def __init__(self, config: ServiceConfig, session: zenoh.Session, tiled: TiledMap,
+                 queue: IngestQueue, fleet: FleetTracker, stats: Stats,
+                 rejections: Rejections) -> None:
+        self.config = config
+        self.tiled = tiled
+        self.queue = queue
+        self.fleet = fleet
+        self.stats = stats
+        self.rejections = rejections
+        self._stop = threading.Event()
+        self.bridge = Ros2Bridge(session, map_name=config.map.name,
+                                 settings=bridge_settings(config), on_ism=self._on_ism,
+                                 on_pose=self._on_pose, on_reject=self._on_reject,
+                                 map_source=self.snapshot)
+        self._thread = threading.Thread(target=self._publish_loop, name="sogm-ros2",
+                                        daemon=True)
+        self._thread.start()
+        log.info("ROS 2: domain %d, ISMs under %s, maps on %s", config.ros2.domain,
+                 config.ros2.ism_prefix, self.bridge.map_topic)
+
+    def _on_ism(self, key: str, layer: str, msg: IsmMessage) -> None:
+        self.stats.count("isms_received")
+        self.queue.put(IsmItem(self.config.ros2.ism_source, key, msg=msg, layer=layer,
+                               robot=msg.robot))
+
+    def _on_pose(self, robot: str, x: float, y: float, yaw: float, stamp: float) -> None:
+        self.stats.count("poses_received")
+        self.fleet.submit_pose(robot, x, y, stamp)  # checked, queued, counted (issue 14)
+
+    def _on_reject(self, what: str, code: str, text: str) -> None:
+        if what == "ism":  # received and refused, as a native bad ISM
+            self.stats.count("isms_received")
+            self.rejections.reject(code, text)
+        else:
+            self.stats.count(f"ros2_{what}_rejected_{code}")
+
+    def snapshot(self) -> MapSnapshot:
+        """The layers and the fused map over the publication region, sampled, pooled and
+        converted by :func:`~sogm_service.adapters.ros2.views.map_snapshot`."""
+        r = self.config.ros2
+        window = publish_region(self.tiled, self.fleet.positions(), mode=r.region,
+                                radius_m=r.region_radius_m, max_cells=r.max_publish_cells)
+        if window is None:
+            return MapSnapshot()
+        return map_snapshot(self.tiled, window, stamp=time.time(), layers=r.layers,
+                            fused_layers=r.fused_layers, method=r.fused_method,
+                            publish_layers=r.publish_layers)
+
+    def _publish_loop(self) -> None:
+        while not self._stop.wait(self.config.ros2.publish_period_s):
+            try:
+                self.bridge.publish_maps()
+            except Exception:  # never let a publication failure end the loop
+                log.exception("ROS 2 map publication failed")
+
+    def stats_extra(self) -> dict[str, Any]:
+        return {"ros2": self.bridge.stats()}
+
+    def close(self, timeout: float) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+        self.bridge.close()

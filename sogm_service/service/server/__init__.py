@@ -1,0 +1,3 @@
+"""The map server: the wiring (``server``) and its parts (ingestion, admission, fusion, queries,
+acks, checkpoints, fleet tracking, stats).
+"""

@@ -1,0 +1,112 @@
+"""From Zenoh's callback threads to the ingestion worker: a bounded queue and one thread.
+
+Zenoh's callbacks only enqueue the raw payload (after the byte limit), so the network side is
+never slowed by decoding or fusion.  The queue is bounded: with the ``lossless`` policy a full
+queue blocks the callback, which pushes back through Zenoh to publishers that use congestion
+control BLOCK; with ``latest`` only the newest ISM per key waits and the replaced ones are
+counted as dropped.  The worker hands each item to the
+:class:`~sogm_service.service.server.pipeline.IngestPipeline` in arrival order.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable
+
+from sogm_service.service.server.pipeline import IsmItem
+from sogm_service.service.server.stats import Stats
+
+
+class IngestQueue:
+    """Bounded hand-off from Zenoh callbacks to the worker, ``lossless`` or ``latest``."""
+
+    def __init__(self, size: int, policy: str, stats: Stats) -> None:
+        self.policy = policy
+        self._stats = stats
+        self._fifo: queue.Queue[IsmItem | None] = queue.Queue(maxsize=size)
+        self._latest: dict[str, IsmItem] = {}
+        self._cond = threading.Condition()
+        self._closed = False
+
+    def put(self, item: IsmItem) -> bool:
+        """Enqueue; ``lossless`` blocks while full.  False once the queue is closed."""
+        if self._closed:
+            return False
+        if self.policy == "lossless":
+            while not self._closed:
+                try:
+                    self._fifo.put(item, timeout=0.2)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+        with self._cond:
+            if item.key in self._latest:
+                self._stats.count("isms_dropped_latest")
+            self._latest[item.key] = item
+            self._cond.notify()
+        return True
+
+    def get(self, timeout: float) -> IsmItem | None:
+        if self.policy == "lossless":
+            try:
+                return self._fifo.get(timeout=timeout)
+            except queue.Empty:
+                return None
+        with self._cond:
+            if not self._latest and not self._cond.wait_for(lambda: bool(self._latest),
+                                                            timeout):
+                return None
+            key = next(iter(self._latest))
+            return self._latest.pop(key)
+
+    def depth(self) -> int:
+        return self._fifo.qsize() if self.policy == "lossless" else len(self._latest)
+
+    def close(self) -> None:
+        """Refuse new items; what is queued stays for the worker to finish."""
+        self._closed = True
+
+
+class IngestWorker:
+    """The thread that drains an :class:`IngestQueue` into ``handle``, in arrival order."""
+
+    def __init__(self, items: IngestQueue, handle: Callable[[IsmItem], None],
+                 stats: Stats) -> None:
+        self.items = items
+        self._handle = handle
+        self._stats = stats
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sogm-ingest", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float) -> None:
+        """Finish what is queued (the queue must be closed first), then end the thread."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            item = self.items.get(timeout=0.1)
+            if item is None:
+                if self._stop.is_set() and self.items.depth() == 0:
+                    return
+                continue
+            self._handle(item)
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Block until the queue is empty and every received ISM has been handled."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            counters, _ = self._stats.snapshot()
+            done = (counters.get("isms_fused", 0) + counters.get("isms_rejected", 0)
+                    + counters.get("isms_dropped_latest", 0))
+            if self.items.depth() == 0 and done >= counters.get("isms_received", 0):
+                return True
+            time.sleep(0.01)
+        return False

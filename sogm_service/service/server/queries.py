@@ -1,0 +1,178 @@
+"""Query handling of the map server, pure: request model -> core sampling -> reply model.
+
+Windows are validated before any work: a request larger than the configured cell limit is
+refused, never attempted.  Every refusal is a :class:`QueryError` carrying a machine-readable
+code, a sentence, and the offending parameter.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, window_geometry
+from sogm_service.core.map.footprint import window_cells, window_price
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.wire.codec import unpack, validate
+from sogm_service.wire.errors import DecodeError, QueryError
+from sogm_service.wire.messages import (
+    FusedReply,
+    FusedRequest,
+    GridReply,
+    PoseModel,
+    SubmapRequest,
+    SupercellNode,
+    SupercellReply,
+    SupercellRequest,
+    WindowRequest,
+    WireArray,
+)
+
+if TYPE_CHECKING:
+    from sogm_service.service.server.admission import Admission
+
+R = TypeVar("R", bound=WindowRequest)
+
+
+def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = None) -> R:
+    """Selector parameters (strings) and an optional msgpack map body -> a request model.
+
+    Parameters given in the selector win over the body's.
+    """
+    merged: dict[str, Any] = {}
+    try:
+        if body:
+            obj = unpack(body)
+            if not isinstance(obj, dict):
+                raise QueryError("bad_parameter", "the query body must be a msgpack map")
+            merged.update(obj)
+        merged.update(params)
+        return validate(cls, merged)
+    except DecodeError as exc:
+        raise QueryError("bad_parameter", exc.message, exc.parameter) from None
+
+
+def window_of(req: WindowRequest, tiled: TiledMap, limit_cells: int,
+              n_layers: int, admission: Admission | None = None) -> GridGeometry:
+    """The request's window geometry, refused when it is larger than ``limit_cells`` or, with
+    an ``admission``, when any of its prices (world, cells read, reply bytes) is too high.
+
+    Every number is checked before it is used: no ``OverflowError`` or ``ValueError`` can
+    come out of a finite but absurd parameter (``width=1e308``, ``x=1e308``)."""
+    res = req.resolution or tiled.lattice.resolution
+    if admission is not None:
+        admission.check_query(req, n_layers)
+    cells = window_cells(req.width, req.height, res)
+    if cells is None or cells[0] * cells[1] * max(n_layers, 1) > limit_cells:
+        count = "an unbounded number of" if cells is None else str(cells[0] * cells[1])
+        raise QueryError("window_too_large",
+                         f"{count} cells x {n_layers} layers exceed the limit of {limit_cells}"
+                         " cells; ask for a smaller window or a coarser resolution", "width")
+    price = window_price(req.x, req.y, req.yaw, req.width, req.height, res,
+                         tiled.lattice.resolution, req.interp)
+    if price is None:
+        raise QueryError("window_too_large", "the window's position or size is not finite at "
+                         "map resolution", "x")
+    return window_geometry(req.x, req.y, req.yaw, req.width, req.height, res)
+
+
+def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[str]:
+    """The requested layers (default: all), each checked to exist."""
+    if not wanted:
+        return list(tiled.layers)
+    unknown = [n for n in wanted if n not in tiled.layers]
+    if unknown:
+        raise QueryError("unknown_layer", f"unknown layer(s) {unknown}; the map has "
+                                          f"{tiled.layers}", "layers")
+    return list(wanted)
+
+
+def _placement(tiled: TiledMap, window: GridGeometry, layers: list[str],
+               stamp: float) -> dict[str, Any]:
+    """The fields every window reply shares (:class:`~sogm_service.wire.messages.WindowReply`)."""
+    return dict(map=tiled.name, frame=tiled.frame, stamp=stamp, resolution=window.resolution,
+                origin=PoseModel(x=window.origin.x, y=window.origin.y, yaw=window.origin.yaw),
+                width=window.width, height=window.height, layers=layers)
+
+
+def submap(tiled: TiledMap, req: SubmapRequest, limit_cells: int, stamp: float,
+           admission: Admission | None = None) -> GridReply:
+    """The ``submap`` queryable: the chosen layers resampled into the requested window."""
+    layers = resolve_layers(tiled, req.layers)
+    window = window_of(req, tiled, limit_cells, len(layers), admission)
+    stack = tiled.sample(window, layers, req.interp)
+    data = logodds.encode_fixed(stack, req.encoding)
+    return GridReply(**_placement(tiled, window, layers, stamp), encoding=req.encoding,
+                     interp=req.interp, data=WireArray.from_array(data))
+
+
+def fuse_layers(stack: npt.NDArray[np.int16], method: str) -> npt.NDArray[np.int32]:
+    """Eq. 6 over axis 0: ``bayes`` (P_B, sum of log-odds) or ``max`` (P_M)."""
+    if method == "bayes":
+        return logodds.fuse_bayes(stack)
+    return logodds.fuse_max(stack).astype(np.int32)
+
+
+def fused(tiled: TiledMap, req: FusedRequest, limit_cells: int, stamp: float,
+          admission: Admission | None = None) -> FusedReply:
+    """The ``fused`` queryable: one layer pooled from the chosen ones by Eq. 6."""
+    layers = resolve_layers(tiled, req.layers)
+    if not layers:
+        raise QueryError("unknown_layer", "the map has no layers yet", "layers")
+    window = window_of(req, tiled, limit_cells, len(layers), admission)
+    stack = tiled.sample(window, layers, req.interp)
+    data = logodds.encode_fixed(fuse_layers(stack, req.method), req.encoding)
+    return FusedReply(**_placement(tiled, window, layers, stamp), method=req.method,
+                      encoding=req.encoding, interp=req.interp,
+                      data=WireArray.from_array(data))
+
+
+def supercell_input(tiled: TiledMap, req: SupercellRequest, limit_cells: int,
+                    admission: Admission | None = None
+                    ) -> tuple[GridGeometry, list[str], npt.NDArray[np.int16]]:
+    """The window, its layers and their log-odds: all the ``supercells`` query needs from the
+    map (the server holds its map lock only for this part, not for SEVDS)."""
+    layers = resolve_layers(tiled, req.layers)
+    if not layers:
+        raise QueryError("unknown_layer", "the map has no layers yet", "layers")
+    window = window_of(req, tiled, limit_cells, len(layers), admission)
+    if min(window.width, window.height) < req.block_size:
+        raise QueryError("bad_parameter", f"the window ({window.width}x{window.height} cells) "
+                                          f"is smaller than one block ({req.block_size})",
+                         "block_size")
+    return window, layers, tiled.sample(window, layers, req.interp)
+
+
+def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry, layers: list[str],
+               stack: npt.NDArray[np.int16], stamp: float) -> SupercellReply:
+    """The ``supercells`` queryable: SEVDS (Eq. 7-10) on the window, as a topometric graph.
+
+    Each node is the paper's triple (T_c, L_c, P_c): centroid in the map frame, adjacent
+    supercells, and the Eq. 11 feature vector (summed log-odds per layer, plus mean P).
+    """
+    from sogm_service.core.sevds.segment import (
+        SevdsParams,  # numba: imported on first use, not at start
+    )
+    from sogm_service.core.sevds.supercells import extract_supercells
+
+    params = SevdsParams(block_size=req.block_size, levels=req.levels, bins=req.bins,
+                         iterations=req.iterations, gamma=req.gamma, criterion=req.criterion)
+    graph, _ = extract_supercells(stack, window, params, tiled.eps0)
+    neighbours: list[list[int]] = [[] for _ in range(graph.count)]
+    for a, b in graph.edges.tolist():
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    cell_area = window.resolution ** 2
+    nodes = [SupercellNode(id=k, x=float(graph.centroids[k, 0]), y=float(graph.centroids[k, 1]),
+                           area_cells=int(graph.areas[k]),
+                           area_m2=float(graph.areas[k]) * cell_area, neighbors=neighbours[k],
+                           logodds_sum=graph.logodds_sum[k].tolist(),
+                           mean_probability=graph.mean_probability[k].tolist())
+             for k in range(graph.count)]
+    labels = WireArray.from_array(graph.labels) if req.labels else None
+    return SupercellReply(**_placement(tiled, window, layers, stamp), nodes=nodes,
+                          labels=labels)
