@@ -189,9 +189,3 @@ class TileLattice:
     def tiles_overlapping(self, geometry: GridGeometry) -> list[tuple[int, int]]:
         """Every tile index that the (possibly rotated) grid may touch."""
         return self.tiles_in_bounds(*geometry.bounds())
-
-    def map_geometry(self, i0: int, j0: int, i1: int, j1: int) -> GridGeometry:
-        """The axis-aligned grid covering tiles ``i0..i1`` x ``j0..j1`` inclusive."""
-        t = self.tile_size
-        return GridGeometry(self.resolution, (i1 - i0 + 1) * t, (j1 - j0 + 1) * t,
-                            self.tile_origin(i0, j0))

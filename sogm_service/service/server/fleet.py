@@ -59,14 +59,6 @@ class FleetTracker:
         with self._lock:
             return self.manager.regions_of_interest()
 
-    def robot_pose(self, robot: str, x: float, y: float, stamp: float) -> None:
-        """A robot's pose from ``pose/**``: from now on the manager follows its poses only."""
-        with self._lock:
-            self._posed.add(robot)
-            self._admitted.add(robot)
-        self.stats.count("poses_applied")
-        self._follow(robot, x, y, stamp)
-
     def ism_centre(self, robot: str | None, x: float, y: float, stamp: float) -> None:
         """An ISM of ``robot`` centred at ``(x, y)``: followed while the robot sends no pose."""
         if not robot:
@@ -170,10 +162,6 @@ class FleetTracker:
         self.stats.count("poses_coalesced", len(self._pending) - len(latest))
         self._pending = list(latest.values())
         self._coalesce_at = len(self._pending) + self.config.limits.max_pending_poses
-
-    def pending_poses(self) -> int:
-        with self._pose_cond:
-            return len(self._pending)
 
     def _pose_loop(self) -> None:
         while True:
