@@ -232,7 +232,7 @@ def submap_breakdown(repeats: int) -> dict[str, float]:
     req = queries.parse_request(SubmapRequest, {k: str(v) for k, v in WINDOW.items()})
     window = window_geometry(req.x, req.y, req.yaw, req.width, req.height, MAP_RES)
     stack = tiled.sample(window, tiled.layers, "biodds")
-    reply = queries.submap(tiled, req, 1 << 26, 0.0)
+    reply = queries.submap(tiled, req, 0.0)
     parts = {"sample_ms": lambda: tiled.sample(window, tiled.layers, "biodds"),
              "encode_reply_ms": lambda: logodds.encode_fixed(stack, "prob_f32"),
              "msgpack_ms": lambda: codec.encode(reply)}

@@ -1,7 +1,8 @@
 """Query handling of the map server, pure: request model -> core sampling -> reply model.
 
-Windows are validated before any work: a request larger than the configured cell limit is
-refused, never attempted.  Every refusal is a :class:`QueryError` carrying a machine-readable
+Windows are priced before any work by the server's
+:class:`~sogm_service.service.server.admission.Admission`: a request over a limit is refused,
+never attempted.  Every refusal is a :class:`QueryError` carrying a machine-readable
 code, a sentence, and the offending parameter.
 """
 
@@ -15,7 +16,6 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, window_geometry
-from sogm_service.core.map.footprint import window_cells, window_price
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.wire.codec import unpack, validate
 from sogm_service.wire.errors import DecodeError, QueryError
@@ -56,27 +56,16 @@ def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = 
         raise QueryError("bad_parameter", exc.message, exc.parameter) from None
 
 
-def window_of(req: WindowRequest, tiled: TiledMap, limit_cells: int,
-              n_layers: int, admission: Admission | None = None) -> GridGeometry:
-    """The request's window geometry, refused when it is larger than ``limit_cells`` or, with
-    an ``admission``, when any of its prices (world, cells read, reply bytes) is too high.
+def window_of(req: WindowRequest, tiled: TiledMap, n_layers: int,
+              admission: Admission | None = None) -> GridGeometry:
+    """The request's window geometry, priced first by ``admission`` (world, cells returned and
+    read, reply bytes), so a refused window is never built.
 
-    Every number is checked before it is used: no ``OverflowError`` or ``ValueError`` can
-    come out of a finite but absurd parameter (``width=1e308``, ``x=1e308``)."""
-    res = req.resolution or tiled.lattice.resolution
+    The server always passes its admission: it is the one place a query is priced.  In-process
+    callers that build their own windows (tests, benchmarks) may pass none."""
     if admission is not None:
         admission.check_query(req, n_layers)
-    cells = window_cells(req.width, req.height, res)
-    if cells is None or cells[0] * cells[1] * max(n_layers, 1) > limit_cells:
-        count = "an unbounded number of" if cells is None else str(cells[0] * cells[1])
-        raise QueryError("window_too_large",
-                         f"{count} cells x {n_layers} layers exceed the limit of {limit_cells}"
-                         " cells; ask for a smaller window or a coarser resolution", "width")
-    price = window_price(req.x, req.y, req.yaw, req.width, req.height, res,
-                         tiled.lattice.resolution, req.interp)
-    if price is None:
-        raise QueryError("window_too_large", "the window's position or size is not finite at "
-                         "map resolution", "x")
+    res = req.resolution or tiled.lattice.resolution
     return window_geometry(req.x, req.y, req.yaw, req.width, req.height, res)
 
 
@@ -99,11 +88,11 @@ def _placement(tiled: TiledMap, window: GridGeometry, layers: list[str],
                 width=window.width, height=window.height, layers=layers)
 
 
-def submap(tiled: TiledMap, req: SubmapRequest, limit_cells: int, stamp: float,
+def submap(tiled: TiledMap, req: SubmapRequest, stamp: float,
            admission: Admission | None = None) -> GridReply:
     """The ``submap`` queryable: the chosen layers resampled into the requested window."""
     layers = resolve_layers(tiled, req.layers)
-    window = window_of(req, tiled, limit_cells, len(layers), admission)
+    window = window_of(req, tiled, len(layers), admission)
     stack = tiled.sample(window, layers, req.interp)
     data = logodds.encode_fixed(stack, req.encoding)
     return GridReply(**_placement(tiled, window, layers, stamp), encoding=req.encoding,
@@ -117,13 +106,13 @@ def fuse_layers(stack: npt.NDArray[np.int16], method: str) -> npt.NDArray[np.int
     return logodds.fuse_max(stack).astype(np.int32)
 
 
-def fused(tiled: TiledMap, req: FusedRequest, limit_cells: int, stamp: float,
+def fused(tiled: TiledMap, req: FusedRequest, stamp: float,
           admission: Admission | None = None) -> FusedReply:
     """The ``fused`` queryable: one layer pooled from the chosen ones by Eq. 6."""
     layers = resolve_layers(tiled, req.layers)
     if not layers:
         raise QueryError("unknown_layer", "the map has no layers yet", "layers")
-    window = window_of(req, tiled, limit_cells, len(layers), admission)
+    window = window_of(req, tiled, len(layers), admission)
     stack = tiled.sample(window, layers, req.interp)
     data = logodds.encode_fixed(fuse_layers(stack, req.method), req.encoding)
     return FusedReply(**_placement(tiled, window, layers, stamp), method=req.method,
@@ -131,7 +120,7 @@ def fused(tiled: TiledMap, req: FusedRequest, limit_cells: int, stamp: float,
                       data=WireArray.from_array(data))
 
 
-def supercell_input(tiled: TiledMap, req: SupercellRequest, limit_cells: int,
+def supercell_input(tiled: TiledMap, req: SupercellRequest,
                     admission: Admission | None = None
                     ) -> tuple[GridGeometry, list[str], npt.NDArray[np.int16]]:
     """The window, its layers and their log-odds: all the ``supercells`` query needs from the
@@ -139,7 +128,7 @@ def supercell_input(tiled: TiledMap, req: SupercellRequest, limit_cells: int,
     layers = resolve_layers(tiled, req.layers)
     if not layers:
         raise QueryError("unknown_layer", "the map has no layers yet", "layers")
-    window = window_of(req, tiled, limit_cells, len(layers), admission)
+    window = window_of(req, tiled, len(layers), admission)
     if min(window.width, window.height) < req.block_size:
         raise QueryError("bad_parameter", f"the window ({window.width}x{window.height} cells) "
                                           f"is smaller than one block ({req.block_size})",

@@ -282,21 +282,20 @@ class MapServer:
 
     def _on_submap(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SubmapRequest, *self.params(q))
-        return queries.submap(self.query_map(), req, self.config.limits.max_query_cells,
-                              time.time(), admission=self.pipeline.admission)
+        return queries.submap(self.query_map(), req, time.time(),
+                              admission=self.pipeline.admission)
 
     def _on_fused(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(FusedRequest, *self.params(q))
-        return queries.fused(self.query_map(), req, self.config.limits.max_query_cells,
-                             time.time(), admission=self.pipeline.admission)
+        return queries.fused(self.query_map(), req, time.time(),
+                             admission=self.pipeline.admission)
 
     def _on_supercells(self, q: zenoh.Query) -> BaseModel:
         req = queries.parse_request(SupercellRequest, *self.params(q))
         self.wait_warm(WARMUP_WAIT_S)
         with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
             window, layers, stack = queries.supercell_input(
-                self.query_map(), req, self.config.limits.max_query_cells,
-                admission=self.pipeline.admission)
+                self.query_map(), req, admission=self.pipeline.admission)
             return queries.supercells(self.map, req, window, layers, stack, time.time())
 
     def info(self) -> InfoReply:
