@@ -1,6 +1,7 @@
 """The tiled map (tiles.py): ISMs fused into lattice tiles (Eq. 1) and windows sampled back.
 
-Expected placements are computed by hand from the lattice definition of DESIGN.md section 3
+Expected placements are computed by hand from the lattice definition of the architecture page,
+section 4 (docs/architecture.md#4-maps-and-tiles)
 (tile ``(i, j)`` covers ``[i T r, (i + 1) T r) x [j T r, (j + 1) T r)``), never from the
 module's own geometry helpers.
 """

@@ -1,4 +1,4 @@
-"""The laser inverse sensor model cast straight on the map's cell lattice (issue 19, item 1).
+"""The laser inverse sensor model cast straight on the map's cell lattice.
 
 :func:`sogm_service.adapters.laser.laser_ism` builds a *sensor-aligned* grid: the map server
 then warps it into the map, and bilinear (biodds) interpolation spreads each ISM cell's

@@ -1,4 +1,4 @@
-"""The demo's additions of issue 19: the laser cast on the map's lattice (sharp walls) and a
+"""The demo's sensors: the laser cast on the map's lattice (sharp walls) and a
 moving person in a layer that forgets (:mod:`sogm_service.sim.moving`).
 
 The person layer is reported on its own (``layer_person.png`` and ``summary.json``'s
@@ -29,7 +29,7 @@ OLD_HALF_LIVES = 4.0
 
 
 def demo_sensors(world: World) -> list[Sensor]:
-    """The default suite with the laser cast on the map's lattice (no resampling: issue 19)."""
+    """The default suite with the laser cast on the map's lattice (no resampling)."""
     return [dataclasses.replace(s, grid="lattice") if isinstance(s, TiltedLaser) else s
             for s in default_sensors(world)]
 

@@ -267,7 +267,8 @@ class MapClient:
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
-            # BLOCK: the default DROP loses large messages under load (DESIGN.md section 4).
+            # BLOCK: the default DROP loses large messages under load
+            # (docs/architecture.md#5-the-wire).
             pub = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK)
             self._publishers[key] = pub

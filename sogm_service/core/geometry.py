@@ -1,4 +1,5 @@
-"""2-D poses, grid geometry and the tile lattice (DESIGN.md section 3).
+"""2-D poses, grid geometry and the tile lattice (architecture, section 4:
+docs/architecture.md#4-maps-and-tiles).
 
 Conventions (the same as nav_msgs/OccupancyGrid):
 
@@ -152,7 +153,8 @@ def window_geometry(x: float, y: float, yaw: float, width_m: float, height_m: fl
 @dataclass(frozen=True, slots=True)
 class TileLattice:
     """The fixed tile lattice of a map frame: tile ``(i, j)`` covers
-    ``[i*T*res, (i+1)*T*res) x [j*T*res, (j+1)*T*res)`` (DESIGN.md section 3)."""
+    ``[i*T*res, (i+1)*T*res) x [j*T*res, (j+1)*T*res)`` (architecture, section 4:
+    docs/architecture.md#4-maps-and-tiles)."""
 
     resolution: float
     tile_size: int = 256

@@ -1,6 +1,7 @@
 """Fixed-point log-odds: the one representation behind every map operation.
 
-A cell of semantic layer *n* stores ``l = logit(P(m_n | z_1:t))`` (DESIGN.md section 1) as an
+A cell of semantic layer *n* stores ``l = logit(P(m_n | z_1:t))`` (architecture, section 1:
+docs/architecture.md#1-log-odds-everywhere) as an
 ``int16`` in units of ``1 / SCALE`` nat (``SCALE = 1000``: one unit is a thousandth of a nat).
 
 Why int16: the map is memory-bound (one add and one clamp per cell per ISM); int16 halves the

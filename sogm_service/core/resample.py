@@ -6,7 +6,8 @@ outside the source grid are *unknown* (P = 0.5, log-odds 0), never zero.
 
 Biodds (paper Eq. 3-5) interpolates the amount of evidence rather than the probability.  With
 ``f(x) = 0.5 tanh((x - 0.5) a) + 0.5`` and ``a = 2 atanh(1 - 2 eps0)``, Eq. 5 equals
-``sigmoid(bilinear(logit(clip(p, eps0, 1 - eps0))))`` exactly (DESIGN.md section 1: ``a``
+``sigmoid(bilinear(logit(clip(p, eps0, 1 - eps0))))`` exactly (architecture, section 1,
+docs/architecture.md#1-log-odds-everywhere: ``a``
 cancels; ``eps0`` moves it between nearest-like, eps0 -> 0, and bilinear-like, eps0 -> 0.5).
 So biodds is *bilinear interpolation of clamped log-odds*, which is what the map stores: the
 fast path is one OpenCV warp of the log-odds grid.

@@ -41,7 +41,7 @@ class MapSettings(_Section):
     tile_size: int = 256
     eps0: Annotated[float, Field(ge=logodds.MIN_EPS0, lt=0.5)] = logodds.DEFAULT_EPS0
     datum: GeodeticFix | None = None
-    # Layers that forget (issue 19): layer name or fnmatch pattern -> half-life (s, of the
+    # Layers that forget: layer name or fnmatch pattern -> half-life (s, of the
     # ISM stamps); decay applied lazily per tile (sogm_service.core.map.forget).
     forget: dict[Annotated[str, Field(min_length=1, max_length=256)],
                  Annotated[float, Field(gt=0)]] = {}

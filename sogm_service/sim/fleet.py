@@ -175,7 +175,7 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
     ``grid = "lattice"`` (default) casts each ISM on the map's cells at ``resolution``
     (:func:`~sogm_service.adapters.laser_lattice.scan_ism_on_lattice`: the server adds it
     without resampling, so walls and beams stay as sharp as the scan; ``resolution`` must be the
-    map's); ``"sensor"`` publishes the sensor-aligned grid the server resamples (issue 19).
+    map's); ``"sensor"`` publishes the sensor-aligned grid the server resamples.
     """
     if grid not in ISM_GRIDS:
         raise ValueError(f"unknown ISM grid {grid!r}; use one of {ISM_GRIDS}")

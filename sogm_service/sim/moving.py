@@ -1,4 +1,4 @@
-"""A moving object for the demo's forgetting layer (issue 19, item 6): a person who walks
+"""A moving object for the demo's forgetting layer: a person who walks
 back and forth, and a detector on every robot that reports it into a ``person`` layer.
 
 The person is not part of the world's grids (the laser and the camera do not see it), so the

@@ -103,7 +103,7 @@ class TiltedLaser:
     p_occ: float = 0.8
     hit_width_cells: int = 1
     # "sensor": a sensor-aligned ISM the server resamples; "lattice": cast on the map's cells
-    # (``resolution`` must be the map's; no resampling, issue 19).  The demo uses "lattice".
+    # (``resolution`` must be the map's; no resampling).  The demo uses "lattice".
     grid: str = "sensor"
 
     @property

@@ -25,7 +25,7 @@ JSON header fields: ``map``, ``frame``, ``i``, ``j``, ``resolution``, ``tile_siz
 ``raw_len``, ``payload_len``, ``payload_crc32`` (CRC-32 of the compressed payload) and
 ``written_unix`` (wall-clock time of the write).  Optional fields, written only when non-empty
 (additive within version 1: older readers ignore them, and a tile without them encodes exactly as
-before they existed): ``decay`` (``{layer: decayed up to}``, issue 19) and ``applied``
+before they existed): ``decay`` (``{layer: decayed up to}``) and ``applied``
 (``{ISM key: [stamp, digest]}``: the last ISM fused into the tile per ISM key, which a cluster's
 handover compares with its journal; at most :data:`MAX_APPLIED` entries, keys of at most
 :data:`MAX_APPLIED_KEY` characters, finite stamps, digests in ``[0, 2**64)``).
@@ -102,10 +102,10 @@ class TileHeader:
     scale: float = logodds.SCALE
     version: int = FORMAT_VERSION
     written_unix: float = 0.0
-    # Optional (issue 19, additive in version 1): decaying layer -> the time up to which its
+    # Optional (additive in version 1): decaying layer -> the time up to which its
     # cells are decayed.  Written only when non-empty; readers before it ignore the field.
     decay: tuple[tuple[str, float], ...] = ()
-    # Optional (issue 20, additive in version 1): ISM key -> (stamp, digest) of the last ISM
+    # Optional (additive in version 1): ISM key -> (stamp, digest) of the last ISM
     # fused into the tile (``Tile.applied``), sorted by key.  Written only when non-empty.
     applied: tuple[tuple[str, float, int], ...] = ()
 

@@ -1,4 +1,5 @@
-"""Every key expression of the service, built and parsed in one place (DESIGN.md section 4).
+"""Every key expression of the service, built and parsed in one place (architecture, section 5:
+docs/architecture.md#5-the-wire).
 
 Under ``<prefix>/<map>/`` (default ``sogm/default/``) a server declares its queryables
 (:data:`QUERYABLES`), ``tiles/<i>/<j>``, ``robots``, the tile-event publisher ``events/tile``,

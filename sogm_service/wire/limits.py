@@ -41,7 +41,7 @@ LAYER_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-./]{1,128}$"
 MAP_NAME_PATTERN: Final = r"^[A-Za-z0-9_\-]+$"
 """What a map name may be (it is one chunk of every key and of every tile file name)."""
 
-# -- admission (issue 14): every cost priced from a header before any work -------------------
+# -- admission: every cost priced from a header before any work -------------------
 
 WORLD_EXTENT_M: Final = 1_000_000.0
 """Half-width (m) of the square world around the map origin: every ISM corner, pose and query

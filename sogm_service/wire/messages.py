@@ -1,4 +1,5 @@
-"""Every message on the wire, as pydantic models (DESIGN.md section 4).
+"""Every message on the wire, as pydantic models (architecture, section 5:
+docs/architecture.md#5-the-wire).
 
 Payloads are msgpack maps of these models' fields (see :mod:`sogm_service.wire.codec`).  Arrays
 travel as :class:`WireArray`: raw little-endian bytes plus dtype and shape.  ISMs carry their

@@ -1,4 +1,4 @@
-"""What an ISM or a query window will cost, from its header alone (issue 14: admission).
+"""What an ISM or a query window will cost, from its header alone (admission).
 
 Pure arithmetic on a handful of floats: no array, no tile list, nothing proportional to the
 footprint is ever built, so a 1-cell ISM claiming 64 km cells is priced in microseconds.  The

@@ -1,4 +1,4 @@
-"""Layers that forget: decay toward unknown with a half-life, applied lazily (issue 19, item 6).
+"""Layers that forget: decay toward unknown with a half-life, applied lazily.
 
 The authors' original server had a "forget" (``l *= factor``, :func:`logodds.forget`) run over
 the whole map.  Here a layer may have a **half-life** ``h`` (seconds): evidence older by ``dt``

@@ -1,7 +1,8 @@
 """The tile manager: which tile each robot is in, and which tiles the fleet needs (pure, no I/O).
 
 This is the paper's *tile publisher* (section III-E) on a fixed lattice
-(:class:`~sogm_service.core.geometry.TileLattice`, DESIGN.md section 3).  Unlike the paper, a switch
+(:class:`~sogm_service.core.geometry.TileLattice`; architecture, section 4:
+docs/architecture.md#4-maps-and-tiles).  Unlike the paper, a switch
 moves no map content: every tile keeps its place in the map frame, and the switch only tells
 listeners (and the server's persistence) where each robot now works.
 

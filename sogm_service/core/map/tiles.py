@@ -1,9 +1,10 @@
 """The tiled semantic map: a stack of log-odds layers kept in tiles of a fixed lattice.
 
-DESIGN.md section 3: tile ``(i, j)`` holds its layers as ``(T, T)`` int16 planes of fixed-point
+Architecture, section 4 (docs/architecture.md#4-maps-and-tiles):
+tile ``(i, j)`` holds its layers as ``(T, T)`` int16 planes of fixed-point
 log-odds (:mod:`sogm_service.core.logodds`), one per layer written into that tile, allocated on
 the layer's first write there (an absent plane is all unknown, 0): adding a layer costs one
-plane in the tiles it reaches, never a copy of other layers (issue 14).  A layer is added to the
+plane in the tiles it reaches, never a copy of other layers.  A layer is added to the
 map when its first ISM arrives; tiles are created on first write.  Writing an ISM resamples it
 straight into each tile it overlaps (no map-sized intermediate), so the cost is proportional to
 the ISM's footprint.
@@ -401,7 +402,7 @@ class TiledMap:
         jj = [j for _, j in known]
         return (min(ii) * span, min(jj) * span, (max(ii) + 1) * span, (max(jj) + 1) * span)
 
-    # -- forgetting (issue 19; :mod:`sogm_service.core.map.forget`) ----------------------------
+    # -- forgetting (:mod:`sogm_service.core.map.forget`) ----------------------------
     def set_forget(self, rules: dict[str, float] | forget.ForgetRules) -> None:
         """Which layers decay toward unknown, with which half-life (seconds): ``{layer name
         or fnmatch pattern: half-life}``.  Set it before the map is used."""

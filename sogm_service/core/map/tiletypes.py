@@ -1,4 +1,5 @@
-"""The tile vocabulary shared by the map, the tile manager and the store (DESIGN.md section 3).
+"""The tile vocabulary shared by the map, the tile manager and the store (architecture,
+section 4: docs/architecture.md#4-maps-and-tiles).
 
 Tile ``(i, j)`` of a lattice with tile size T and resolution r covers
 ``[i T r, (i+1) T r) x [j T r, (j+1) T r)`` of the map frame and holds every layer as one

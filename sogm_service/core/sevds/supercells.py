@@ -8,7 +8,8 @@ window and turns the label image into the paper's triples ``C = (T_c, L_c, P_c)`
   supercell's cells, mapped by ``GridGeometry.cell_to_world()`` (cell centres on integers);
 * ``L_c`` -- the adjacent supercells (sharing a 4-neighbour cell edge);
 * ``P_c`` -- the feature vector of Eq. 11.  ``Odd(P_c)_n = prod_{m in c} Odd(P(m_n))`` is, in
-  log-odds, the *sum* of the cells' log-odds of layer n (DESIGN.md section 1), reported in nats.
+  log-odds, the *sum* of the cells' log-odds of layer n (architecture, section 1:
+  docs/architecture.md#1-log-odds-everywhere), reported in nats.
   The mean probability of every layer is reported next to it, because a sum of log-odds grows with
   the area and is hard to read on its own.
 

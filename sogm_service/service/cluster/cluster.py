@@ -1,6 +1,7 @@
 """One map over several servers: membership, tile ownership, handover and gathering.
 
-DESIGN.md section 6, issue 20.  With ``[cluster] enabled = true`` the servers of one map form a
+Architecture, section 10: docs/architecture.md#10-several-servers-one-map.  With
+``[cluster] enabled = true`` the servers of one map form a
 cluster without a coordinator:
 
 * **Membership**: the servers' liveliness tokens ``<prefix>/<map>/@server/<id>``.  A DELETE of a

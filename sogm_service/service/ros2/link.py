@@ -71,7 +71,7 @@ class Ros2Link:
 
     def _on_pose(self, robot: str, x: float, y: float, yaw: float, stamp: float) -> None:
         self.stats.count("poses_received")
-        self.fleet.submit_pose(robot, x, y, stamp)  # checked, queued, counted (issue 14)
+        self.fleet.submit_pose(robot, x, y, stamp)  # priced, queued, counted as any pose
 
     def _on_reject(self, what: str, code: str, text: str) -> None:
         if what == "ism":  # received and refused, as a native bad ISM

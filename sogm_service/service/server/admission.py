@@ -1,4 +1,4 @@
-"""Admission: every ISM, pose and query priced from its header before any work (issue 14).
+"""Admission: every ISM, pose and query priced from its header before any work.
 
 Each check raises the refusal with its code (:mod:`sogm_service.wire.errors`) and changes
 nothing; the caller counts and logs it as every other refusal.  The arithmetic lives in

@@ -1,4 +1,5 @@
-"""The map's tiles on disk: the store, checkpoints and the memory budget (DESIGN.md section 3).
+"""The map's tiles on disk: the store, checkpoints and the memory budget (architecture,
+section 4: docs/architecture.md#4-maps-and-tiles).
 
 * **Store**: on start the store directory is indexed and every stored tile is known to the map
   (loaded on first touch).  One server per directory: a second one fails fast.

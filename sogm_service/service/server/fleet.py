@@ -1,4 +1,5 @@
-"""Following the fleet: the tile manager fed by poses and ISMs (DESIGN.md section 3).
+"""Following the fleet: the tile manager fed by poses and ISMs (architecture, section 4:
+docs/architecture.md#4-maps-and-tiles).
 
 The :class:`~sogm_service.core.map.tilemanager.TileManager` follows each robot's pose (``pose/**``,
 or the centre of the robot's ISMs while it sends no poses).  When a robot switches tile a
@@ -106,7 +107,7 @@ class FleetTracker:
         with self._lock:
             return len(self.manager.current_tiles())
 
-    # -- admission and pose coalescing (issue 14) -----------------------------------------
+    # -- admission and pose coalescing ----------------------------------------------------
     def check_robot(self, robot: str) -> None:
         """Refuse a robot that would be one more than ``max_robots`` (``too_many_robots``)."""
         with self._lock:

@@ -1,4 +1,5 @@
-"""Fusing ISMs on several threads over disjoint tiles (DESIGN.md section 6).
+"""Fusing ISMs on several threads over disjoint tiles (architecture, section 7:
+docs/architecture.md#7-queries-never-wait-behind-ingestion).
 
 Tile ``(i, j)`` belongs to fuse worker ``j mod K``: a whole row of tiles to one worker, since
 a rotated ISM is warped a row of tiles at a time (a band spanning the footprint,

@@ -1,6 +1,6 @@
 """The ingestion pipeline: one ISM from its Zenoh payload to the tiles, each step once.
 
-DESIGN.md section 2, in this order and nowhere else:
+Architecture, section 3 (docs/architecture.md#3-the-two-data-paths), in this order and nowhere else:
 
 1. **decode and validate** the payload (:mod:`sogm_service.wire.codec`, the pydantic model);
 2. **prepare**: the layer name (the ``layer`` field or the key's remainder), the frame check,

@@ -1,6 +1,7 @@
 """The map server daemon: the Zenoh wiring around the ingestion pipeline and the queries.
 
-Threads and why (DESIGN.md sections 2-4):
+Threads and why (architecture, sections 3 and 7: docs/architecture.md#3-the-two-data-paths,
+docs/architecture.md#7-queries-never-wait-behind-ingestion):
 
 * Zenoh's own callback threads receive ISMs and only queue the raw payload
   (:mod:`sogm_service.service.server.ingest`), so the network side is never slowed by decoding or
