@@ -26,6 +26,7 @@ from sogm_service.store.format import (
     tile_header,
     tile_to_bytes,
 )
+from sogm_service.wire import encodings
 from sogm_service.wire.errors import TileFormatError
 from sogm_service.wire.keys import tile_of_key
 
@@ -85,7 +86,7 @@ class Replication:
                 continue
             blob = self.tile_bytes((i, j))
             if blob is not None:
-                q.reply(tile_key, blob)
+                q.reply(tile_key, blob, encoding=zenoh.Encoding(encodings.TILE))
                 self.stats.count("tiles_served")
 
     def tile_bytes(self, index: TileIndex) -> bytes | None:

@@ -28,10 +28,11 @@ import zenoh
 from sogm_service.core.geometry import GridGeometry, wrap_angle
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.matching.alignment import Alignment, align, at_map_resolution
-from sogm_service.core.matching.match import MatchParams, match_window
+from sogm_service.core.matching.match import match_window
+from sogm_service.core.matching.params import MatchParams
 from sogm_service.service.config import MatchingSettings, ServiceConfig
 from sogm_service.service.server.stats import Stats
-from sogm_service.wire import codec
+from sogm_service.wire import codec, encodings
 from sogm_service.wire.errors import IsmRejectedError
 from sogm_service.wire.messages import IsmMessage, MatchReport, PoseModel
 
@@ -129,7 +130,8 @@ class Matcher:
             dx_m=dx, dy_m=dy, dyaw_rad=dyaw, inliers=int(r.inliers),
             score_before=_finite(r.score_before), score_after=_finite(r.score_after),
             elapsed_ms=elapsed * 1e3)
-        self._session.put(self.config.keys.matching(key), codec.encode(report))
+        self._session.put(self.config.keys.matching(key), codec.encode(report),
+                          encoding=zenoh.Encoding(encodings.MSGPACK))
 
     def stats_extra(self) -> dict[str, Any]:
         with self._lock:

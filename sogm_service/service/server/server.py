@@ -48,7 +48,7 @@ from sogm_service.service.server.ingest import IngestQueue, IngestWorker
 from sogm_service.service.server.matcher import Matcher
 from sogm_service.service.server.pipeline import IngestPipeline, IsmItem, check_robot
 from sogm_service.service.server.stats import Stats
-from sogm_service.wire import codec
+from sogm_service.wire import codec, encodings
 from sogm_service.wire.errors import QueryError, SogmError
 from sogm_service.wire.keys import QUERYABLES, last_chunk
 from sogm_service.wire.limits import WARMUP_WAIT_S
@@ -66,6 +66,10 @@ from sogm_service.wire.messages import (
 log = logging.getLogger(__name__)
 
 Handler = Callable[[zenoh.Query], BaseModel | bytes | None]
+
+
+MSGPACK = zenoh.Encoding(encodings.MSGPACK)
+"""Every reply, error reply, event and report the server sends is a msgpack wire model."""
 
 
 class MapServer:
@@ -127,7 +131,8 @@ class MapServer:
             self._ros2 = Ros2Link(self.config, self._session, self.map, self._queue, self.fleet,
                                   self.stats, self.pipeline.rejections)
         self.tiles.start()
-        self.outcomes.attach(self._session.put)
+        session = self._session  # rejection reports go out with their declared encoding
+        self.outcomes.attach(lambda key, payload: session.put(key, payload, encoding=MSGPACK))
         # Last: the token says "ready", so a client that waits for it finds every subscriber
         # and queryable declared (the ack queryable once came after it).
         self._declared.append(
@@ -163,7 +168,7 @@ class MapServer:
             if self.cluster is not None:  # and under this member's own key
                 self._declared.append(s.declare_queryable(
                     self.keys.member(self.server_id, name), self._guarded(name, handler)))
-        self._events = s.declare_publisher(self.keys.tile_events,
+        self._events = s.declare_publisher(self.keys.tile_events, encoding=MSGPACK,
                                            congestion_control=zenoh.CongestionControl.BLOCK,
                                            reliability=zenoh.Reliability.RELIABLE)
         self._declared.append(self._events)
@@ -261,17 +266,18 @@ class MapServer:
                 result = handler(q)
                 if result is not None:
                     payload = result if isinstance(result, bytes) else codec.encode(result)
-                    q.reply(q.key_expr, payload)
+                    q.reply(q.key_expr, payload, encoding=MSGPACK)
             except SogmError as exc:
                 self.stats.count(f"query_errors_{exc.code}")
                 q.reply_err(codec.encode(ErrorReply(
                     code=exc.code, message=exc.message, parameter=exc.parameter,
-                    retry_after_s=getattr(exc, "retry_after_s", None))))
+                    retry_after_s=getattr(exc, "retry_after_s", None))), encoding=MSGPACK)
             except Exception as exc:
                 log.exception("internal error answering %s", q.selector)
                 self.stats.count("query_errors_internal")
                 q.reply_err(codec.encode(ErrorReply(code="internal_error",
-                                                    message=f"{type(exc).__name__}: {exc}")))
+                                                    message=f"{type(exc).__name__}: {exc}")),
+                            encoding=MSGPACK)
             self.stats.latency(name, time.perf_counter() - started)
         return on_query
 

@@ -1,0 +1,83 @@
+"""Every payload the server sends declares its encoding, read here by a plain Zenoh session (no
+project client): msgpack wire models as ``application/msgpack`` (replies, error replies, tile
+events, rejection reports), whole tiles as ``application/x-sogm-tile``.  Without a declared
+encoding a generic Zenoh tool sees ``zenoh/bytes`` and cannot tell what it holds."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from tests.conftest import ServerProcess, wait_until
+
+pytestmark = pytest.mark.integration
+
+MSGPACK = "application/msgpack"
+TILE = "application/x-sogm-tile"
+
+
+def _raw_session(endpoint: str) -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("client"))
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+def _replies(session: zenoh.Session, selector: str) -> list[zenoh.Reply]:
+    return list(session.get(selector, timeout=10.0))
+
+
+def test_replies_errors_events_and_tiles_declare_their_encoding(server: ServerProcess) -> None:
+    events: list[zenoh.Sample] = []
+    rejections: list[zenoh.Sample] = []
+    lock = threading.Lock()
+
+    def keep(into: list[zenoh.Sample]) -> object:
+        def on_sample(sample: zenoh.Sample) -> None:
+            with lock:
+                into.append(sample)
+        return on_sample
+
+    raw = _raw_session(server.endpoint)
+    try:
+        subs = [raw.declare_subscriber("sogm/default/events/tile", keep(events)),
+                raw.declare_subscriber("sogm/default/rejections/**", keep(rejections))]
+        with server.client() as client:
+            client.publish_ism("ism/robot1/laser/obstacle", np.full((40, 40), 230, np.uint8),
+                               resolution=0.05, robot="robot1", wait=True)
+            client.publish_pose("robot1", x=1.0, y=1.0)
+            client.publish_pose("robot1", x=40.0, y=1.0)  # three tiles on: a tile switch
+            client.publish_raw("ism/robot2/laser/obstacle", b"\xc1 not msgpack")
+
+            for name in ("submap?x=1;y=1;width=2;height=2;resolution=0.1", "fused?x=1;y=1;"
+                         "width=2;height=2;resolution=0.1", "info", "stats", "robots"):
+                (reply,) = _replies(raw, f"sogm/default/{name}")
+                assert reply.ok is not None, name
+                assert str(reply.ok.encoding) == MSGPACK, name
+                assert isinstance(msgpack.unpackb(reply.ok.payload.to_bytes()), dict)
+
+            (refused,) = _replies(raw, "sogm/default/submap?x=1;y=1;width=-2;height=2")
+            assert refused.err is not None
+            assert str(refused.err.encoding) == MSGPACK
+            assert msgpack.unpackb(refused.err.payload.to_bytes())["code"] == "bad_parameter"
+
+            tiles = _replies(raw, "sogm/default/tiles/**")
+            assert tiles and all(r.ok is not None for r in tiles)
+            assert {str(r.ok.encoding) for r in tiles if r.ok is not None} == {TILE}
+
+            assert wait_until(lambda: bool(events) and bool(rejections), timeout=10.0)
+        with lock:
+            assert {str(s.encoding) for s in events} == {MSGPACK}
+            assert {str(s.encoding) for s in rejections} == {MSGPACK}
+            assert msgpack.unpackb(rejections[0].payload.to_bytes())["code"] \
+                == "malformed_msgpack"
+        for sub in subs:
+            sub.undeclare()
+    finally:
+        raw.close()
