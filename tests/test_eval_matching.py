@@ -9,7 +9,8 @@ import pytest
 
 from sogm_service.adapters.carmen import read_carmen
 from sogm_service.core.geometry import GridGeometry, Pose2D
-from sogm_service.core.matching.match import MatchParams, match_window
+from sogm_service.core.matching.match import match_window
+from sogm_service.core.matching.params import MatchParams
 from sogm_service.eval import matching as em
 from sogm_service.service.config import MatchingSettings
 from sogm_service.service.server.matcher import match_params

@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service.eval import figures
+from sogm_service.eval import figures, scenes
 from sogm_service.eval import segmentation as ev
 
 CLASSES = ("unknown", "floor", "table", "obstacle")
 
 
-def synthetic_scene(seed: int) -> ev.Scene:
+def synthetic_scene(seed: int) -> scenes.Scene:
     """48x48 room: unknown border, floor, one table and one obstacle, three noisy layers."""
     rng = np.random.default_rng(seed)
     cls = np.zeros((48, 48), np.uint8)
@@ -29,7 +29,7 @@ def synthetic_scene(seed: int) -> ev.Scene:
     for layer, k in enumerate((3, 1, 2)):  # obstacle, floor, table layers
         p[layer][inside] = np.where(cls[inside] == k, 0.9, 0.1)
     p += rng.normal(0.0, 0.04, p.shape).astype(np.float32)
-    return ev.Scene.build(f"syn{seed}", ["obstacle", "floor", "table"], p, cls, CLASSES)
+    return scenes.Scene.build(f"syn{seed}", ["obstacle", "floor", "table"], p, cls, CLASSES)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def result(tmp_path_factory: pytest.TempPathFactory) -> ev.EvaluationResult:
 
 def test_gt_segments_are_connected_components_per_class() -> None:
     cls = np.array([[0, 0, 1], [1, 0, 1]])
-    seg = ev.gt_segments(cls)
+    seg = scenes.gt_segments(cls)
     # class 0: one piece; class 1: (0,2)-(1,2) and the lone (1,0) -> three segments.
     assert len(np.unique(seg)) == 3
     assert seg[0, 2] == seg[1, 2] != seg[1, 0]

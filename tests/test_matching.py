@@ -26,6 +26,7 @@ from sogm_service.bench.matching import benchmark_match, synthetic_floorplan
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.core.matching import match as mt
+from sogm_service.core.matching import params as mp
 from sogm_service.core.resample import resample_logodds
 
 RES = 0.05
@@ -42,7 +43,7 @@ class Case:
     window_geom: GridGeometry
     window: npt.NDArray[np.int16]
 
-    def match(self, params: mt.MatchParams) -> mt.MatchResult:
+    def match(self, params: mp.MatchParams) -> mt.MatchResult:
         return mt.match_ism(self.ism, self.window, params,
                             mt.prior_matrix(self.claimed, self.window_geom))
 
@@ -94,7 +95,7 @@ def laser_view(full: npt.NDArray[np.int16], rng: np.random.Generator,
     return logodds.to_fixed(out)
 
 
-def make_case(seed: int, params: mt.MatchParams, laser: bool = False, shift: float = 10.0,
+def make_case(seed: int, params: mp.MatchParams, laser: bool = False, shift: float = 10.0,
               rot_deg: float = 10.0) -> Case:
     """A seeded misaligned ISM: random place (in free space), heading, shift and rotation."""
     plan = synthetic_floorplan(PLAN, seed=seed)
@@ -118,7 +119,7 @@ def make_case(seed: int, params: mt.MatchParams, laser: bool = False, shift: flo
     return Case(ism, truth, claimed, window_geom, window)
 
 
-def run_cases(params: mt.MatchParams, laser: bool) -> tuple[list[mt.MatchResult],
+def run_cases(params: mp.MatchParams, laser: bool) -> tuple[list[mt.MatchResult],
                                                            list[tuple[float, float]]]:
     """Results and (centre, heading) errors of the corrected geometry (inf when no model)."""
     results, errors = [], []
@@ -142,8 +143,8 @@ def recovered(res: mt.MatchResult, err: tuple[float, float]) -> bool:
 
 
 @pytest.mark.parametrize("model", ["partial_affine", "homography"])
-def test_cut_isms_are_recovered_within_a_cell_and_a_degree(model: mt.Model) -> None:
-    params = mt.MatchParams(model=model)
+def test_cut_isms_are_recovered_within_a_cell_and_a_degree(model: mp.Model) -> None:
+    params = mp.MatchParams(model=model)
     results, errors = run_cases(params, laser=False)
     ok = sum(recovered(r, e) for r, e in zip(results, errors, strict=True))
     assert ok >= math.ceil(0.95 * N_CASES), Counter(r.reason for r in results)
@@ -154,7 +155,7 @@ def test_cut_isms_are_recovered_within_a_cell_and_a_degree(model: mt.Model) -> N
 
 def test_partial_laser_views_are_recovered_or_refused_never_wrong() -> None:
     """A laser sees one room of the plan: fewer features; what is accepted must be right."""
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     results, errors = run_cases(params, laser=True)
     accepted = [(r, e) for r, e in zip(results, errors, strict=True) if r.accepted]
     wrong = [e for r, e in accepted if not recovered(r, e)]
@@ -164,7 +165,7 @@ def test_partial_laser_views_are_recovered_or_refused_never_wrong() -> None:
 
 def test_refinement_makes_partial_views_sub_cell() -> None:
     """ECC refinement: without it the ORB-only estimate of a partial view is off by cells."""
-    base = mt.MatchParams()
+    base = mp.MatchParams()
     cases = [make_case(seed, base, laser=True) for seed in range(12)]
     mean_err = {}
     for refine in (False, True):
@@ -180,7 +181,7 @@ def test_refinement_makes_partial_views_sub_cell() -> None:
 
 
 def test_correct_claim_gives_a_near_zero_accepted_correction() -> None:
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     case = make_case(3, params, shift=0.0, rot_deg=0.0)
     res = case.match(params)
     assert res.accepted, res.reason
@@ -191,7 +192,7 @@ def test_correct_claim_gives_a_near_zero_accepted_correction() -> None:
 
 
 def test_accepted_correction_improves_agreement_and_reports_fields() -> None:
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     case = make_case(5, params)
     res = case.match(params)
     assert res.accepted and res.reason == "ok"
@@ -208,7 +209,7 @@ def test_accepted_correction_improves_agreement_and_reports_fields() -> None:
 
 
 def test_matching_is_deterministic() -> None:
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     case = make_case(7, params, laser=True)
     a, b = case.match(params), case.match(params)
     assert a.reason == b.reason and a.inliers == b.inliers
@@ -217,7 +218,7 @@ def test_matching_is_deterministic() -> None:
 
 
 def test_int_fixed_point_and_float_nats_give_the_same_match() -> None:
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     case = make_case(9, params)
     a = case.match(params)
     b = mt.match_ism(logodds.from_fixed(case.ism), logodds.from_fixed(case.window), params,
@@ -232,7 +233,7 @@ def test_int_fixed_point_and_float_nats_give_the_same_match() -> None:
 
 def test_featureless_isms_are_refused() -> None:
     """Empty floor (or nothing known) has no structure: never 'corrected' at random."""
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     floor = logodds.to_fixed(np.full((ISM, ISM), -2.0))
     nothing = np.zeros((ISM, ISM), np.int16)
     rng = np.random.default_rng(0)
@@ -248,8 +249,8 @@ def test_featureless_isms_are_refused() -> None:
 
 def test_an_ism_from_elsewhere_is_refused() -> None:
     """The window of the claimed pose shows another place: no transform may be accepted."""
-    params = mt.MatchParams()
-    reasons: Counter[mt.MatchReason] = Counter()
+    params = mp.MatchParams()
+    reasons: Counter[mp.MatchReason] = Counter()
     for seed in range(20):
         plan = synthetic_floorplan(PLAN, seed=seed)
         plan_geom = GridGeometry(RES, PLAN, PLAN)
@@ -262,26 +263,26 @@ def test_an_ism_from_elsewhere_is_refused() -> None:
         res = mt.match_ism(ism, win, params, mt.prior_matrix(there, wg))
         reasons[res.reason] += 1
         assert not res.accepted, (seed, res.correction, res.score_before, res.score_after)
-    assert mt.MatchReason.OK not in reasons
+    assert mp.MatchReason.OK not in reasons
 
 
 def test_acceptance_rules() -> None:
-    p = mt.MatchParams(max_translation=5.0, max_rotation=math.radians(3), min_inliers=8)
+    p = mp.MatchParams(max_translation=5.0, max_rotation=math.radians(3), min_inliers=8)
     ok = mt.Correction(3.0, -3.0, math.radians(2), 1.01)
     assert mt.check_correction(ok, 0.0, 8, p) is None
-    assert mt.check_correction(ok, 0.0, 7, p) is mt.MatchReason.TOO_FEW_INLIERS
+    assert mt.check_correction(ok, 0.0, 7, p) is mp.MatchReason.TOO_FEW_INLIERS
     far = mt.Correction(4.0, 4.0, 0.0, 1.0)
-    assert mt.check_correction(far, 0.0, 8, p) is mt.MatchReason.CORRECTION_TOO_LARGE
+    assert mt.check_correction(far, 0.0, 8, p) is mp.MatchReason.CORRECTION_TOO_LARGE
     turned = mt.Correction(0.0, 0.0, math.radians(-4), 1.0)
-    assert mt.check_correction(turned, 0.0, 8, p) is mt.MatchReason.CORRECTION_TOO_LARGE
+    assert mt.check_correction(turned, 0.0, 8, p) is mp.MatchReason.CORRECTION_TOO_LARGE
     scaled = mt.Correction(0.0, 0.0, 0.0, 1.2)
-    assert mt.check_correction(scaled, 0.0, 8, p) is mt.MatchReason.DEGENERATE
-    assert mt.check_correction(ok, 5.0, 8, p) is mt.MatchReason.DEGENERATE
+    assert mt.check_correction(scaled, 0.0, 8, p) is mp.MatchReason.DEGENERATE
+    assert mt.check_correction(ok, 5.0, 8, p) is mp.MatchReason.DEGENERATE
 
 
 def test_a_shift_beyond_the_bounds_is_not_accepted() -> None:
     """Claimed 14 cells off while only 4 are allowed: refused (not found or too large)."""
-    params = mt.MatchParams(max_translation=4.0)
+    params = mp.MatchParams(max_translation=4.0)
     case = make_case(2, params, shift=0.0, rot_deg=0.0)
     off = Pose2D(14 * RES, 0.0, 0.0)
     claimed = GridGeometry(RES, ISM, ISM, off.compose(case.truth.origin))
@@ -290,20 +291,20 @@ def test_a_shift_beyond_the_bounds_is_not_accepted() -> None:
     win = resample_logodds(plan, GridGeometry(RES, PLAN, PLAN), wg, "biodds")
     res = mt.match_ism(case.ism, win, params, mt.prior_matrix(claimed, wg))
     assert not res.accepted
-    loose = mt.match_ism(case.ism, win, mt.MatchParams(), mt.prior_matrix(claimed, wg))
+    loose = mt.match_ism(case.ism, win, mp.MatchParams(), mt.prior_matrix(claimed, wg))
     assert loose.accepted  # the same pair is matched when 14 cells are allowed
 
 
 def test_worse_agreement_is_refused() -> None:
-    p = mt.MatchParams(min_overlap=10)
+    p = mp.MatchParams(min_overlap=10)
     rng = np.random.default_rng(1)
     a = rng.normal(size=(50, 50)).astype(np.float32) * 2
-    assert mt._verdict(0.8, 0.7, 2500, p) is mt.MatchReason.NO_IMPROVEMENT
-    assert mt._verdict(0.5, 0.7, 2500, p) is mt.MatchReason.OK
-    assert mt._verdict(0.1, 0.2, 2500, p) is mt.MatchReason.POOR_AGREEMENT
-    assert mt._verdict(0.1, 0.9, 5, p) is mt.MatchReason.TOO_LITTLE_OVERLAP
-    assert mt._verdict(math.nan, 0.9, 2500, p) is mt.MatchReason.OK
-    assert mt._verdict(0.5, math.nan, 2500, p) is mt.MatchReason.POOR_AGREEMENT
+    assert mt._verdict(0.8, 0.7, 2500, p) is mp.MatchReason.NO_IMPROVEMENT
+    assert mt._verdict(0.5, 0.7, 2500, p) is mp.MatchReason.OK
+    assert mt._verdict(0.1, 0.2, 2500, p) is mp.MatchReason.POOR_AGREEMENT
+    assert mt._verdict(0.1, 0.9, 5, p) is mp.MatchReason.TOO_LITTLE_OVERLAP
+    assert mt._verdict(math.nan, 0.9, 2500, p) is mp.MatchReason.OK
+    assert mt._verdict(0.5, math.nan, 2500, p) is mp.MatchReason.POOR_AGREEMENT
     assert mt.agreement(a, a, p)[0] == pytest.approx(1.0)
     assert mt.agreement(a, -a, p)[0] == pytest.approx(-1.0)
 
@@ -313,7 +314,7 @@ def test_worse_agreement_is_refused() -> None:
 
 
 def test_agreement_counts_only_cells_known_in_both() -> None:
-    p = mt.MatchParams(min_overlap=4)
+    p = mp.MatchParams(min_overlap=4)
     a = np.array([[2.0, -2.0, 0.0, 2.0], [-2.0, 2.0, 0.0, -2.0]], np.float32)
     b = np.array([[2.0, -2.0, 5.0, 0.0], [-2.0, 2.0, -5.0, 0.0]], np.float32)
     score, n = mt.agreement(a, b, p)
@@ -324,7 +325,7 @@ def test_agreement_counts_only_cells_known_in_both() -> None:
 
 
 def test_render_keeps_free_unknown_occupied_distinct() -> None:
-    p = mt.MatchParams(blur_sigma=0.0)
+    p = mp.MatchParams(blur_sigma=0.0)
     img = mt.render_u8(np.array([[-3.0, -0.1, 0.0, 0.1, 3.0]], np.float32), p)
     assert img.dtype == np.uint8
     assert list(img[0]) == [p.free_level, p.unknown_level, p.unknown_level, p.unknown_level,
@@ -344,12 +345,12 @@ def test_fit_similarity_recovers_a_known_transform() -> None:
 
 def test_corrected_geometry_applies_the_matrix() -> None:
     """Build a result by hand: the corrected geometry must be the truth exactly."""
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     truth = grid_at(300.0, 250.0, 0.4)
     claimed = grid_at(307.0, 244.0, 0.4 + math.radians(6))
     wg = mt.match_window(claimed, params)
     matrix = mt.prior_matrix(truth, wg)  # where the ISM's cells truly are in the window
-    res = mt.MatchResult(True, mt.MatchReason.OK, None, matrix, mt.prior_matrix(claimed, wg),
+    res = mt.MatchResult(True, mp.MatchReason.OK, None, matrix, mt.prior_matrix(claimed, wg),
                          0, 0, 0, 0, 0.0, 0.0, 0.0)
     geom = mt.corrected_geometry(claimed, wg, res)
     assert geom.resolution == pytest.approx(RES)
@@ -369,7 +370,7 @@ def test_corrected_geometry_applies_the_matrix() -> None:
 
 
 def test_default_prior_is_the_match_window_prior() -> None:
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     claimed = grid_at(300.0, 250.0, 1.0, n=100)
     wg = mt.match_window(claimed, params)
     np.testing.assert_allclose(mt.prior_matrix(claimed, wg),
@@ -378,13 +379,13 @@ def test_default_prior_is_the_match_window_prior() -> None:
 
 def test_params_are_validated() -> None:
     with pytest.raises(ValueError):
-        mt.MatchParams(model="affine")  # type: ignore[arg-type]
+        mp.MatchParams(model="affine")  # type: ignore[arg-type]
     with pytest.raises(ValueError):
-        mt.MatchParams(min_inliers=2)
+        mp.MatchParams(min_inliers=2)
     with pytest.raises(ValueError):
-        mt.MatchParams(unknown_level=0)
+        mp.MatchParams(unknown_level=0)
     with pytest.raises(ValueError):
-        mt.MatchParams(refine_stages=((0, 4),))
+        mp.MatchParams(refine_stages=((0, 4),))
     with pytest.raises(ValueError):
         mt.match_ism(np.zeros(5), np.zeros((5, 5)))
 
@@ -393,12 +394,12 @@ def test_params_are_validated() -> None:
 def test_empty_or_tiny_grids_are_refused_not_raised(shape: tuple[int, int]) -> None:
     tiny = np.zeros(shape, np.int16)
     other = synthetic_floorplan(128, seed=1)
-    assert mt.match_ism(tiny, other).reason is mt.MatchReason.TOO_FEW_FEATURES
-    assert mt.match_ism(other, tiny).reason is mt.MatchReason.TOO_FEW_FEATURES
+    assert mt.match_ism(tiny, other).reason is mp.MatchReason.TOO_FEW_FEATURES
+    assert mt.match_ism(other, tiny).reason is mp.MatchReason.TOO_FEW_FEATURES
 
 
 def test_ratio_test_option_still_recovers_cut_isms() -> None:
-    params = mt.MatchParams(ratio=0.8, cross_check=False)
+    params = mp.MatchParams(ratio=0.8, cross_check=False)
     for seed in range(6):
         case = make_case(seed, params)
         res = case.match(params)
@@ -454,7 +455,7 @@ def test_intel_perturbed_isms_end_closer_to_the_corrected_poses() -> None:
     map_geom = GridGeometry(INTEL_RES, int(size[0]), int(size[1]),
                             Pose2D(float(lo[0]), float(lo[1]), 0.0))
     state = np.zeros(map_geom.shape, np.int16)
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     rng = np.random.default_rng(0)
 
     def ism(scan: LaserScan, pose: Pose2D) -> tuple[GridGeometry, npt.NDArray[np.int16]]:
@@ -463,7 +464,7 @@ def test_intel_perturbed_isms_end_closer_to_the_corrected_poses() -> None:
         return g, logodds.prob_to_fixed(p)
 
     before, after = [], []
-    reasons: Counter[mt.MatchReason] = Counter()
+    reasons: Counter[mp.MatchReason] = Counter()
     for i, scan in enumerate(scans):
         if i >= 150 and i % 10 == 0:
             d = rng.uniform(-1.0, 1.0, 3) * np.array([0.3, 0.3, math.radians(5.0)])
@@ -500,7 +501,7 @@ def pose_error(a: Pose2D, b: Pose2D) -> tuple[float, float]:
 
 def test_a_map_aligned_window_also_works() -> None:
     """The window need not be in the ISM's frame: any window with its prior matrix will do."""
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     plan = synthetic_floorplan(PLAN, seed=11)
     plan_geom = GridGeometry(RES, PLAN, PLAN)
     ok = 0
@@ -528,8 +529,8 @@ def test_corrected_geometry_recovers_any_true_geometry(x: float, y: float, yaw: 
     """For any claimed/true pair, a match that found the true placement yields the truth."""
     truth = GridGeometry(0.1, w, h, Pose2D(x, y, yaw))
     claimed = GridGeometry(0.1, w, h, Pose2D(x + dx, y + dy, yaw + dyaw))
-    wg = mt.match_window(claimed, mt.MatchParams())
-    res = mt.MatchResult(True, mt.MatchReason.OK, None, mt.prior_matrix(truth, wg),
+    wg = mt.match_window(claimed, mp.MatchParams())
+    res = mt.MatchResult(True, mp.MatchReason.OK, None, mt.prior_matrix(truth, wg),
                          mt.prior_matrix(claimed, wg), 0, 0, 0, 0, 0.0, 0.0, 0.0)
     np.testing.assert_allclose(mt.corrected_geometry(claimed, wg, res).cell_to_world(),
                                truth.cell_to_world(), atol=1e-7)
@@ -543,7 +544,7 @@ def test_corrected_geometry_recovers_any_true_geometry(x: float, y: float, yaw: 
 
 
 def test_summary_is_json_ready() -> None:
-    params = mt.MatchParams()
+    params = mp.MatchParams()
     good = make_case(5, params).match(params)
     assert good.correction is not None and good.matrix is not None
     out = json.loads(json.dumps(good.summary(), allow_nan=False))

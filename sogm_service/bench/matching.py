@@ -15,7 +15,8 @@ import numpy.typing as npt
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import Pose2D
-from sogm_service.core.matching.match import MatchParams, match_ism
+from sogm_service.core.matching.match import match_ism
+from sogm_service.core.matching.params import MatchParams
 
 
 def synthetic_floorplan(

@@ -9,7 +9,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -17,12 +17,11 @@ import numpy.typing as npt
 
 from sogm_service.eval import metrics
 from sogm_service.eval.metrics import METRIC_TITLES, METRICS
-
-if TYPE_CHECKING:
-    from sogm_service.eval.segmentation import Labels, Scene
+from sogm_service.eval.scenes import Labels, Scene
 
 COLOURS: tuple[tuple[int, int, int], ...] = (
     (40, 40, 220), (30, 150, 30), (200, 120, 20), (0, 170, 230), (170, 60, 170), (90, 90, 90))
+
 
 def _nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
     """Round tick values covering ``[lo, hi]``."""

@@ -45,13 +45,12 @@ from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.matching.match import (
-    MatchParams,
-    MatchReason,
     corrected_geometry,
     match_ism,
     match_window,
     prior_matrix,
 )
+from sogm_service.core.matching.params import MatchParams, MatchReason
 
 INTEL_LOG = Path("/work/shared/data/carmen/intel-corrected.log.gz")
 LAYER = "obstacle"

@@ -48,36 +48,14 @@ from sogm_service.core.sevds.segment import SevdsParams, sevds
 from sogm_service.eval import metrics
 from sogm_service.eval.figures import metric_plots, segmentation_figure
 from sogm_service.eval.metrics import METRICS
+from sogm_service.eval.scenes import Labels, Scene, tabletop_scene
 
-Labels = npt.NDArray[np.int32]
 Params = dict[str, float | int | str]
 
 ALGORITHMS: tuple[str, ...] = ("SEVDS", "SEVDS-E", "SEEDS", "SLIC", "SLICO", "LSC")
 BLOCKS_FULL: tuple[int, ...] = (8, 12, 16, 20, 24, 28, 32)
 BLOCKS_QUICK: tuple[int, ...] = (8, 16, 32)
 REFERENCE_BLOCK = 8  # the paper's rule of thumb: the smallest object, 8 cells
-
-
-@dataclass(frozen=True, slots=True)
-class Scene:
-    """One evaluation input: SOGM stack ``(N, H, W)`` in [0, 1] and its ground truth."""
-
-    name: str
-    layers: tuple[str, ...]
-    stack: npt.NDArray[np.float32]
-    classes: npt.NDArray[np.uint8]
-    class_names: tuple[str, ...]
-    segments: Labels  # ground-truth segments for UE and BR: see gt_segments
-
-    @classmethod
-    def build(cls, name: str, layers: Sequence[str], stack: npt.ArrayLike,
-              classes: npt.ArrayLike, class_names: Sequence[str]) -> Scene:
-        """A scene with its segments derived from the classes; the stack clipped to [0, 1]."""
-        st = np.clip(np.asarray(stack, np.float32), 0.0, 1.0)
-        cl = np.asarray(classes, np.uint8)
-        if st.ndim != 3 or st.shape[1:] != cl.shape:
-            raise ValueError(f"stack {st.shape} does not match classes {cl.shape}")
-        return cls(name, tuple(layers), st, cl, tuple(class_names), gt_segments(cl))
 
 
 @dataclass
@@ -90,32 +68,6 @@ class EvaluationResult:
     files: list[Path] = field(default_factory=list)
     chosen: dict[tuple[str, int], Params] = field(default_factory=dict)
     seconds: float = 0.0
-
-
-# --------------------------------------------------------------------------- scenes
-
-
-def gt_segments(classes: npt.ArrayLike) -> Labels:
-    """Ground-truth segments: the 4-connected components of every class, numbered 0..G-1."""
-    cls = np.asarray(classes)
-    out = np.zeros(cls.shape, np.int32)
-    offset = 0
-    for c in np.unique(cls):
-        n, comp = cv2.connectedComponents((cls == c).astype(np.uint8), connectivity=4)
-        mask = comp > 0
-        out[mask] = comp[mask] + offset - 1
-        offset += n - 1
-    return out
-
-
-def tabletop_scene(seed: int) -> Scene:
-    """A paper-like table-top room (sim package) mapped by simulated laser + camera."""
-    from sogm_service.sim.offline import map_world
-    from sogm_service.sim.worlds import tabletop_world
-
-    world = tabletop_world(seed)
-    layers, stack = map_world(world, seed)
-    return Scene.build(f"scene{seed}", layers, stack, world.labels, world.classes)
 
 
 # --------------------------------------------------------------------------- algorithms

@@ -40,7 +40,7 @@ ISM_CODES: Final[dict[str, str]] = {
                      "tile store",
 }
 """Why a well-formed ISM cannot go into this map (:class:`IsmRejectedError`); scan matching adds
-``match_<reason>`` (:class:`sogm_service.core.matching.match.MatchReason`)."""
+``match_<reason>`` (:class:`sogm_service.core.matching.params.MatchReason`)."""
 
 ROS2_CODES: Final[dict[str, str]] = {
     "bad_cdr": "the payload is not a CDR serialisation of the expected ROS 2 type",

@@ -17,12 +17,12 @@ import numpy.typing as npt
 
 from sogm_service.core.geometry import GridGeometry
 from sogm_service.core.matching.match import (
-    MatchParams,
     MatchResult,
     corrected_geometry,
     match_ism,
     prior_matrix,
 )
+from sogm_service.core.matching.params import MatchParams
 from sogm_service.core.resample import resample_logodds
 
 MIN_KNOWN_CELLS = 200

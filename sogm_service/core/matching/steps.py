@@ -6,16 +6,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core import logodds
-
-if TYPE_CHECKING:
-    from sogm_service.core.matching.match import MatchParams
+from sogm_service.core.matching.params import MatchParams
 
 Matrix3 = npt.NDArray[np.float64]
 Image = npt.NDArray[np.uint8]
