@@ -358,7 +358,8 @@ def test_tf_chain_composes_map_odom_base_link() -> None:
 # -- the published region and snapshot -----------------------------------------------------
 def test_publish_region_and_snapshot() -> None:
     from sogm_service.adapters.ros2.views import map_snapshot, publish_region
-    from sogm_service.core.map.tiles import TiledMap, TileLattice
+    from sogm_service.core.geometry import TileLattice
+    from sogm_service.core.map.tiles import TiledMap
     from sogm_service.service.server import pipeline
     from sogm_service.wire.messages import IsmMessage, PoseModel
 

@@ -9,10 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-import sogm_service.core.map.tiles as tiles_module
+import sogm_service.core.map.fusing as fusing_module
 from sogm_service.core import resample
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
-from sogm_service.core.map.tiles import TiledMap, TileSnapshot
+from sogm_service.core.map.tile import TileSnapshot
+from sogm_service.core.map.tiles import TiledMap
 
 RES, T = 0.05, 16
 SPAN = RES * T
@@ -225,7 +226,7 @@ def test_a_patch_failing_half_way_leaves_the_map_unchanged_and_creates_no_tile(
             yielded.append(part.index)
             yield part
 
-    monkeypatch.setattr(tiles_module, "tile_patches", failing)
+    monkeypatch.setattr(fusing_module, "tile_patches", failing)
     inc, _ = whole_footprint()
     geom = GridGeometry(RES, 3 * T, 3 * T, Pose2D(0.3, 0.1, yaw))
     with pytest.raises(RuntimeError, match="resampling failed"):

@@ -1,6 +1,6 @@
 """One tile of the map and the small types around it (:mod:`sogm_service.core.map.tiles` holds the
-map that owns them): a tile's planes and bookkeeping, a consistent snapshot of it, the plane
-set of a stored stack, and what a fuse keeps of each tile between its two phases.
+map that owns them): a tile's planes and bookkeeping, a consistent snapshot of it, which tiles a
+fuse may write, and the plane set of a stored stack.
 
 Pure (numpy only, no I/O).
 """
@@ -16,7 +16,6 @@ import numpy as np
 import numpy.typing as npt
 
 from sogm_service.core.map.tiletypes import Mark, TileIndex
-from sogm_service.core.resample import TilePatch
 
 
 @dataclass(eq=False)
@@ -84,55 +83,6 @@ class TileSnapshot:
 
 Owner = Callable[[TileIndex], bool]
 """Which tiles a call may write (a fuse worker's share of the lattice)."""
-
-
-@dataclass(eq=False, slots=True)
-class Target:
-    """One tile a fuse writes: its patch, the tile (pinned), how phase 1 got it, its version
-    then, and the plane to add if the tile lacked the layer."""
-
-    part: TilePatch
-    tile: Tile
-    how: str  # "resident", "loaded" or "created"
-    version: int
-    fresh: npt.NDArray[np.int16] | None = None
-    pinned: bool = True
-
-
-SCRATCH_MAX = 64 * 256 * 256 * 4
-"""Bytes of warped patches a thread keeps between ISMs, at most (128 int16 tiles of 256)."""
-
-
-class Scratch(threading.local):
-    """Per thread: the memory of one ISM's warped patches (fuse's phase 1 keeps them all until
-    phase 2 has added them), kept for the next ISM: fresh arrays of this size are mmapped and
-    page-faulted by glibc on every call, which costs as much as the warp.  It grows to the
-    largest footprint seen, up to :data:`SCRATCH_MAX`; patches beyond are fresh arrays."""
-
-    def __init__(self) -> None:
-        self.buf: npt.NDArray[np.uint8] = np.empty(0, np.uint8)
-        self.used = 0
-
-    def reset(self) -> Scratch:
-        self.used = 0
-        return self
-
-    def take(self, h: int, w: int, dtype: np.dtype) -> npt.NDArray:
-        dtype = np.dtype(dtype)
-        n = h * w * dtype.itemsize
-        start = -(-self.used // 64) * 64
-        if start + n > self.buf.size:
-            if start + n > SCRATCH_MAX:
-                return np.empty((h, w), dtype)
-            # A bigger buffer from 0; the patches already taken keep the old one alive.
-            self.buf = np.empty(min(SCRATCH_MAX, max(2 * self.buf.size, 4 * n)), np.uint8)
-            start = 0
-        self.used = start + n
-        return self.buf[start:start + n].view(dtype).reshape(h, w)
-
-
-scratch = Scratch()
-
 
 
 def planes_of(ids: list[int], stack: npt.NDArray[np.int16],

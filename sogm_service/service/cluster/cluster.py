@@ -58,8 +58,9 @@ import numpy.typing as npt
 import zenoh
 
 from sogm_service.core.map.rendezvous import Ownership
-from sogm_service.core.map.tiles import Mark, Tile, TiledMap, planes_of
-from sogm_service.core.map.tiletypes import TileIndex
+from sogm_service.core.map.tile import Tile, planes_of
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.cluster.gathered import GatheredMap
 from sogm_service.service.cluster.handover import content_digest, replay_plan
 from sogm_service.service.cluster.replication import TileFiles

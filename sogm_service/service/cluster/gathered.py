@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.core.map.tiles import Tile, TiledMap
+from sogm_service.core.map.tile import Tile
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import TileIndex
 
 if TYPE_CHECKING:

@@ -8,7 +8,7 @@ import hashlib
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.core.map.tiles import Mark
+from sogm_service.core.map.tiletypes import Mark
 from sogm_service.service.server.fusers import FuseJob
 
 

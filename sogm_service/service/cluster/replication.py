@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import zenoh
 
 from sogm_service.core.geodesy import LocalTangentPlane
-from sogm_service.core.map.tiles import TiledMap, TileSnapshot
+from sogm_service.core.map.tile import TileSnapshot
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.config import MapSettings, ServiceConfig
 from sogm_service.service.server.checkpoints import Checkpointer

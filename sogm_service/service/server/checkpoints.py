@@ -20,7 +20,8 @@ import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from sogm_service.core.map.tiles import TiledMap, TileSnapshot
+from sogm_service.core.map.tile import TileSnapshot
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import LoaderResult, TileIndex
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server.stats import Stats
