@@ -140,10 +140,10 @@ def test_heavy_queries_beyond_the_bound_are_busy_with_a_retry_hint() -> None:
 
 
 def test_busy_travels_with_its_hint_and_old_error_replies_still_decode() -> None:
-    from sogm_service.client.mapclient import _service_error
+    from sogm_service.client.results import service_error
 
-    exc = _service_error(codec.encode(ErrorReply(code="busy", message="m", retry_after_s=0.5)))
+    exc = service_error(codec.encode(ErrorReply(code="busy", message="m", retry_after_s=0.5)))
     assert exc.code == "busy" and exc.retry_after_s == 0.5
     old = msgpack.packb({"code": "window_too_large", "message": "m", "parameter": "width"})
-    exc = _service_error(old)  # a reply of a server before the field: no hint
+    exc = service_error(old)  # a reply of a server before the field: no hint
     assert exc.code == "window_too_large" and exc.retry_after_s is None

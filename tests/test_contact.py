@@ -115,7 +115,7 @@ def test_wait_fused_waits_for_every_ism_under_load(server: ServerProcess) -> Non
 
 
 def test_client_refuses_bad_grids_before_sending() -> None:
-    from sogm_service.client.mapclient import build_ism
+    from sogm_service.client.isms import build_ism
 
     with pytest.raises(InvalidIsmError, match="2-D"):
         build_ism(np.zeros((10, 3, 2), np.uint8), resolution=0.1)

@@ -10,13 +10,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from sogm_service.client.mapclient import MapClient, QueryTimeoutError, ServiceError
+from sogm_service.client.mapclient import MapClient
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.server import pipeline as ingest
 from sogm_service.service.server import queries
 from sogm_service.wire import codec
+from sogm_service.wire.errors import QueryTimeoutError, ServiceError
 from sogm_service.wire.messages import (
     FusedRequest,
     IsmMessage,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from sogm_service.apps.cli import main as cli_main
-from sogm_service.client.mapclient import ServiceError
 from sogm_service.core import logodds
+from sogm_service.wire.errors import ServiceError
 from tests.conftest import ServerProcess, wait_processed
 
 pytestmark = pytest.mark.integration

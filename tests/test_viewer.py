@@ -37,7 +37,8 @@ from sogm_service.apps.viewer.tiles import (
     parse_view,
     visible_tiles,
 )
-from sogm_service.client.mapclient import MapClient, ism_footprint
+from sogm_service.client.isms import ism_footprint
+from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import free_tcp_endpoint, wait_listening
 from sogm_service.core.geometry import Pose2D
 from tests.conftest import ServerProcess, start_server, wait_until

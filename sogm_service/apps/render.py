@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:  # only for annotations: drawing needs no Zenoh
-    from sogm_service.client.mapclient import GridResult
+    from sogm_service.client.results import GridResult
     from sogm_service.wire.messages import SupercellReply
 
 UNKNOWN_BGR = (150, 110, 70)

@@ -4,7 +4,8 @@ The client lives in :mod:`sogm_service.client.mapclient`; this module keeps the 
 path stable and gathers what a client program needs in one place.
 """
 
-from sogm_service.client.mapclient import GridResult, MapClient
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.results import GridResult
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.wire.errors import (
     ClientError,

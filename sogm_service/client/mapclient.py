@@ -17,15 +17,15 @@ import math
 import secrets
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-import numpy as np
 import numpy.typing as npt
 import zenoh
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 
+from sogm_service.client.isms import IsmFootprint, build_ism, ism_footprint
+from sogm_service.client.results import GridResult, grid_result, service_error
 from sogm_service.client.session import (
     DEFAULT_ENDPOINT,
     ZenohSettings,
@@ -33,13 +33,10 @@ from sogm_service.client.session import (
     loopback_settings,
     open_session,
 )
-from sogm_service.core import logodds
-from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.geometry import Pose2D
 from sogm_service.wire import codec
 from sogm_service.wire.errors import (
     ConnectError,
-    DecodeError,
-    InvalidIsmError,
     IsmNotFusedError,
     QueryTimeoutError,
     ServiceError,
@@ -48,7 +45,6 @@ from sogm_service.wire.errors import (
 from sogm_service.wire.keys import MapKeys, last_chunk, pose_key, tile_of_key
 from sogm_service.wire.limits import SUPERCELLS_TIMEOUT_S
 from sogm_service.wire.messages import (
-    ErrorReply,
     FusedReply,
     GeodeticFix,
     GridReply,
@@ -56,7 +52,6 @@ from sogm_service.wire.messages import (
     IsmAck,
     IsmMessage,
     PoseMessage,
-    PoseModel,
     RejectionReport,
     RobotTilesReply,
     StatsReply,
@@ -71,30 +66,6 @@ DEFAULT_TIMEOUT_S = 5.0
 
 WAIT_FUSED_TIMEOUT_S = 15.0
 """Default budget of :meth:`MapClient.wait_fused` (a busy server's queue drains first)."""
-
-
-@dataclass(frozen=True)
-class GridResult:
-    """A sub-map or fused map: ``data`` is ``(layers, H, W)`` (fused: ``(H, W)``)."""
-
-    geometry: GridGeometry
-    layers: list[str]
-    encoding: str
-    data: npt.NDArray[Any]
-    stamp: float
-    method: str | None = None
-
-    def probabilities(self) -> npt.NDArray[np.float32]:
-        """The cells as probabilities whatever the reply encoding (unknown -> 0.5)."""
-        return logodds.decode_to_prob(self.data, self.encoding)
-
-
-def _grid_result(reply: GridReply | FusedReply) -> GridResult:
-    geometry = GridGeometry(reply.resolution, reply.width, reply.height,
-                            Pose2D(reply.origin.x, reply.origin.y, reply.origin.yaw))
-    method = reply.method if isinstance(reply, FusedReply) else None
-    return GridResult(geometry, list(reply.layers), reply.encoding, reply.data.array(),
-                      reply.stamp, method)
 
 
 class MapClient:
@@ -178,7 +149,7 @@ class MapClient:
                 payload = reply.err.payload.to_bytes()
                 if payload == b"Timeout":  # Zenoh's own: the queryable did not answer in time
                     raise QueryTimeoutError(f"{key}: no answer within {budget:g} s")
-                raise _service_error(payload)
+                raise service_error(payload)
         raise QueryTimeoutError(f"no reply from {key} within {budget:g} s: is a server of map "
                                 f"{self.map_name!r} running and reachable?")
 
@@ -192,7 +163,7 @@ class MapClient:
         """The chosen layers (default all) resampled into a window centred on ``(x, y)``."""
         params = dict(x=x, y=y, yaw=yaw, width=width, height=height, resolution=resolution,
                       layers=layers, interp=interp, encoding=encoding)
-        return _grid_result(self._get(GridReply, "submap", params))
+        return grid_result(self._get(GridReply, "submap", params))
 
     def fused(self, *, method: str = "bayes", x: float = 0.0, y: float = 0.0, yaw: float = 0.0,
               width: float = 10.0, height: float = 10.0, resolution: float | None = None,
@@ -201,7 +172,7 @@ class MapClient:
         """Eq. 6 over the chosen layers: ``bayes`` (P_B) or ``max`` (P_M)."""
         params = dict(method=method, x=x, y=y, yaw=yaw, width=width, height=height,
                       resolution=resolution, layers=layers, interp=interp, encoding=encoding)
-        return _grid_result(self._get(FusedReply, "fused", params))
+        return grid_result(self._get(FusedReply, "fused", params))
 
     def supercells(self, timeout: float | None = None, **params: Any) -> SupercellReply:
         """The SEVDS topometric graph of a window (same window parameters + SEVDS's).
@@ -391,111 +362,9 @@ class MapClient:
         return self.session.declare_subscriber(key_expr, on_sample)
 
 
-def _encoding_of(arr: npt.NDArray[Any]) -> str:
-    if arr.dtype == np.uint8:
-        return "prob_u8"
-    if arr.dtype == np.int8:
-        return "occupancy_i8"
-    if np.issubdtype(arr.dtype, np.floating):
-        return "prob_f32"
-    raise InvalidIsmError(f"cannot infer an ISM encoding from dtype {arr.dtype}: use uint8 "
-                          "(prob_u8), int8 (occupancy_i8) or float32 (prob_f32), or name "
-                          "the encoding")
-
-
-def build_ism(data: npt.NDArray[Any], *, resolution: float, origin: Pose2D | None = None,
-              encoding: str | None = None, layer: str | None = None, frame: str = "map",
-              stamp: float = 0.0, robot: str | None = None) -> IsmMessage:
-    """The :class:`IsmMessage` of a grid, checked as the server will check it; raises
-    :class:`InvalidIsmError` (one line) for anything it would refuse or that would not mean
-    what the array says."""
-    origin = origin or Pose2D()
-    arr = np.ascontiguousarray(data)
-    if arr.ndim != 2 or 0 in arr.shape:
-        raise InvalidIsmError(f"an ISM is a 2-D grid (rows, columns); got shape {arr.shape}")
-    enc = encoding or _encoding_of(arr)
-    try:
-        dtype = logodds.ENCODING_DTYPES[logodds.Encoding(enc)]
-    except ValueError:
-        raise InvalidIsmError(f"unknown encoding {enc!r}: one of "
-                              f"{', '.join(e.value for e in logodds.Encoding)}") from None
-    if arr.dtype.kind not in "biuf":
-        raise InvalidIsmError(f"dtype {arr.dtype} is not a number")
-    with np.errstate(invalid="ignore", over="ignore"):
-        cells = arr.astype(dtype.newbyteorder("<"))
-        same = np.array_equal(cells.astype(np.float64), arr.astype(np.float64), equal_nan=True)
-    if not same:
-        raise InvalidIsmError(f"the {arr.dtype} values do not fit encoding {enc} ({dtype}) "
-                              "without changing them: convert them first")
-    try:
-        return IsmMessage(layer=layer, frame=frame, stamp=stamp, robot=robot,
-                          resolution=resolution,
-                          origin=PoseModel(x=origin.x, y=origin.y, yaw=origin.yaw),
-                          width=arr.shape[1], height=arr.shape[0], encoding=enc,
-                          data=cells.tobytes())
-    except ValidationError as exc:
-        err = exc.errors(include_url=False)[0]
-        where = ".".join(str(p) for p in err["loc"]) or "ism"
-        raise InvalidIsmError(f"{where}: {err['msg']}") from None
-
-
 def _param(v: Any) -> str:
     if isinstance(v, (list, tuple)):
         return ",".join(str(x) for x in v)
     if isinstance(v, float) and math.isfinite(v):
         return repr(v)
     return str(v)
-
-
-def _service_error(payload: bytes) -> ServiceError:
-    try:
-        err = codec.decode(ErrorReply, payload)
-    except DecodeError:
-        return ServiceError("unknown", payload[:200].decode("utf-8", "replace"))
-    exc = ServiceError(err.code, err.message, err.parameter)
-    exc.retry_after_s = err.retry_after_s
-    return exc
-
-
-@dataclass(frozen=True)
-class IsmFootprint:
-    """Where one ISM lies in its frame: the four corners of its grid (m), counter-clockwise
-    from the origin corner of cell (0, 0)."""
-
-    key: str
-    robot: str | None
-    layer: str | None
-    frame: str
-    stamp: float
-    corners: tuple[tuple[float, float], ...]
-
-
-def ism_footprint(key: str, payload: bytes) -> IsmFootprint | None:
-    """The footprint of an ISM payload from its header fields, or ``None`` when they are
-    missing or not finite (never raises)."""
-    try:
-        obj = codec.unpack(payload)
-    except codec.DecodeError:
-        return None
-    if not isinstance(obj, dict):
-        return None
-    origin = obj.get("origin") or {}
-    try:
-        res = float(obj["resolution"])
-        w, h = obj["width"], obj["height"]
-        x, y, yaw = (float(origin.get(k, 0.0)) for k in ("x", "y", "yaw"))
-        stamp = float(obj.get("stamp", 0.0))
-    except (KeyError, TypeError, ValueError, AttributeError):
-        return None
-    if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= 1 << 20
-            and 0 < h <= 1 << 20 and res > 0
-            and all(math.isfinite(v) for v in (res, x, y, yaw, stamp))):
-        return None
-    c, s = math.cos(yaw), math.sin(yaw)
-    corners = tuple((x + c * u - s * v, y + s * u + c * v)
-                    for u, v in ((0.0, 0.0), (w * res, 0.0), (w * res, h * res), (0.0, h * res)))
-    robot, layer = obj.get("robot"), obj.get("layer")
-    frame = obj.get("frame", "map")
-    return IsmFootprint(key, robot if isinstance(robot, str) else None,
-                        layer if isinstance(layer, str) else None,
-                        frame if isinstance(frame, str) else "map", stamp, corners)

@@ -33,7 +33,8 @@ import numpy as np
 
 from sogm_service.apps.render import UNKNOWN_BGR, dominant_class_image, probability_image
 from sogm_service.apps.viewer.tiles import Lattice, TileSpec
-from sogm_service.client.mapclient import IsmFootprint, MapClient
+from sogm_service.client.isms import IsmFootprint
+from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import loopback_settings, open_session
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import LocalTangentPlane
