@@ -1,9 +1,10 @@
 """A cluster member's view of the whole map for one query: its own tiles, and its peers' fetched
-for the rest (:mod:`sogm_service.service.cluster.cluster`)."""
+for the rest (:mod:`sogm_service.service.cluster.cluster`), through the two questions it asks
+the cluster (:class:`TileSource`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -12,15 +13,22 @@ from sogm_service.core.map.tile import Tile
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import TileIndex
 
-if TYPE_CHECKING:
-    from sogm_service.service.cluster.cluster import Cluster
+
+class TileSource(Protocol):
+    """What a gathered map needs of the cluster: which tiles this member serves itself, and the
+    others fetched from their owners (None: the owner has none; raises ``QueryError`` when no
+    owner answers)."""
+
+    def serves(self, index: TileIndex) -> bool: ...
+
+    def fetch(self, indices: list[TileIndex]) -> dict[TileIndex, Tile | None]: ...
 
 
 class GatheredMap(TiledMap):
     """A read-only view of the cluster's map for one query: this member's tiles where it
     serves them, the owners' (fetched once, before sampling) elsewhere."""
 
-    def __init__(self, base: TiledMap, cluster: Cluster) -> None:
+    def __init__(self, base: TiledMap, cluster: TileSource) -> None:
         super().__init__(base.name, base.frame, base.lattice, base.eps0)
         self._base = base
         self._cluster = cluster
