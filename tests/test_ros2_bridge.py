@@ -33,7 +33,8 @@ from sogm_service.client import MapClient  # noqa: E402
 from sogm_service.client.session import free_tcp_endpoint, loopback_settings, open_session  # noqa: E402
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice  # noqa: E402
 from sogm_service.core.map.tiles import TiledMap  # noqa: E402
-from sogm_service.service.ros2.bridge import Ros2Bridge, Ros2BridgeSettings  # noqa: E402
+from sogm_service.service.ros2.bridge import Ros2Bridge  # noqa: E402
+from sogm_service.service.ros2.settings import Ros2BridgeSettings  # noqa: E402
 from sogm_service.service.server import pipeline  # noqa: E402
 from sogm_service.wire import codec  # noqa: E402
 from sogm_service.wire.messages import IsmMessage, PoseModel  # noqa: E402

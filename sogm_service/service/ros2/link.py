@@ -20,7 +20,8 @@ import zenoh
 from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
-from sogm_service.service.ros2.bridge import Ros2Bridge, Ros2BridgeSettings
+from sogm_service.service.ros2.bridge import Ros2Bridge
+from sogm_service.service.ros2.settings import Ros2BridgeSettings
 from sogm_service.service.server.fleet import FleetTracker
 from sogm_service.service.server.ingest import IngestQueue
 from sogm_service.service.server.pipeline import IsmItem
