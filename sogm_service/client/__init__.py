@@ -1,7 +1,9 @@
 """The public Python client: ``from sogm_service.client import MapClient``.
 
-The client lives in :mod:`sogm_service.client.mapclient`; this module keeps the documented import
-path stable and gathers what a client program needs in one place.
+The client lives in :mod:`sogm_service.client.mapclient`, its results in
+:mod:`sogm_service.client.results` and its ISM helpers in :mod:`sogm_service.client.isms`; this
+module keeps the documented import path stable and gathers what a client program needs in one
+place.
 """
 
 from sogm_service.client.mapclient import MapClient
