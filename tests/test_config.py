@@ -10,12 +10,18 @@ import pytest
 import zenoh
 
 from sogm_service.service.config import ConfigError, ServiceConfig, load_config
+from sogm_service.service.config_reference import REGENERATE, render_toml
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 
 
 def test_deploy_example_documents_exactly_the_defaults() -> None:
     assert load_config(DEPLOY / "sogm-service.toml") == ServiceConfig()
+
+
+def test_deploy_example_is_generated_from_the_models() -> None:
+    text = (DEPLOY / "sogm-service.toml").read_text(encoding="utf-8")
+    assert text == render_toml(), f"deploy/sogm-service.toml is stale: run `{REGENERATE}`"
 
 
 def test_no_file_means_defaults() -> None:

@@ -20,11 +20,20 @@ class ZenohSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
-    mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = []
-    connect: list[str] = []
-    config_file: Annotated[Path, Field(strict=False)] | None = None
-    multicast_scouting: bool = False
+    mode: Annotated[Literal["peer", "client", "router"], Field(
+        description="The Zenoh mode: peer, client or router.")] = "peer"
+    listen: Annotated[list[str], Field(description=(
+        "Endpoints to listen on, e.g. [\"tcp/192.168.1.10:7447\"] for the site network. With "
+        "none (nor connect, nor config_file) serve listens on tcp/127.0.0.1:7447, where "
+        "clients connect by default."))] = []
+    connect: Annotated[list[str], Field(description=(
+        "Endpoints to connect to, e.g. [\"tcp/router.site.lan:7447\"]."))] = []
+    config_file: Annotated[Path, Field(strict=False)] | None = Field(None, description=(
+        "A full Zenoh JSON5 config (e.g. from sogm-service certs), honoured as it is: with it, "
+        "set here only what should override it."), json_schema_extra={
+        "example": "/etc/sogm-service/zenoh-server.json5"})
+    multicast_scouting: Annotated[bool, Field(
+        description="Find peers by UDP multicast scouting.")] = False
 
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
