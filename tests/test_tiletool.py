@@ -111,13 +111,13 @@ def test_export_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixtur
     for p in (tmp_path / "s2").glob("*.tile"):
         p.rename(tmp_path / "s" / p.name)
     code, _ = run(["export", str(tmp_path / "s"), "--tile", "0", "0", "--out", "x.npy"])
-    assert code == 1 and "several maps" in capsys.readouterr().err
+    assert code == 2 and "several maps" in capsys.readouterr().err
     code, _ = run(["export", str(tmp_path / "s"), "--map", "lab", "--tile", "5", "5",
                    "--out", str(tmp_path / "x.npy")])
-    assert code == 1 and "no readable tile" in capsys.readouterr().err
+    assert code == 2 and "no readable tile" in capsys.readouterr().err
     code, _ = run(["export", str(tmp_path / "s"), "--map", "lab", "--tile", "0", "0",
                    "--layers", "zzz", "--out", str(tmp_path / "x.npy")])
-    assert code == 1 and "no layer" in capsys.readouterr().err
+    assert code == 2 and "no layer" in capsys.readouterr().err
 
 
 def test_import_validates_copies_and_rejects_with_reasons(tmp_path: Path) -> None:
@@ -157,7 +157,7 @@ def test_import_refuses_a_store_in_use(tmp_path: Path,
     make_store(tmp_path / "src", {(0, 0): (["a"], filled(1, 1))})
     with DirectoryStore(tmp_path / "dest", "lab", RES, T):
         code, _ = run(["import", str(tmp_path / "src"), "--into", str(tmp_path / "dest")])
-    assert code == 1 and "in use" in capsys.readouterr().err
+    assert code == 2 and "in use" in capsys.readouterr().err
 
 
 def test_entry_points(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -52,6 +52,7 @@ from typing import Any
 
 from cryptography import x509
 
+from sogm_service.apps.options import command, fail, subcommands
 from sogm_service.apps.pki import (
     DEFAULT_DAYS,
     DEFAULT_ENDPOINT,
@@ -311,47 +312,51 @@ def remove_identity(directory: Path | str, name: str) -> Pki:
     return pki
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="sogm-service certs",
-        description="A development PKI and Zenoh mutual-TLS/access-control configs for a site.")
-    sub = p.add_subparsers(dest="action", required=True)
-    init = sub.add_parser("init", help="create a CA, identities and their Zenoh configs")
+def add_parser(subparsers: Any) -> None:
+    p = command(subparsers, "certs", "a dev PKI and mutual-TLS / access-control Zenoh configs",
+                description="A development PKI and Zenoh mutual-TLS/access-control configs for "
+                            "a site: a CA, one certificate, key and Zenoh config per identity, "
+                            "access control by certificate name on the listening node.")
+    p.set_defaults(handler=run)
+    sub = subcommands(p, "action", "ACTION")
+    init = command(sub, "init", "create a CA, identities and their Zenoh configs")
     init.add_argument("dir", type=Path, help="directory to write (created)")
     init.add_argument("--server", action="append", required=True, metavar="NAME",
                       help="a map server identity (repeatable; the first listens when there "
                            "is no router)")
     init.add_argument("--robot", action="append", default=[], metavar="NAME",
-                      help="a robot identity (repeatable)")
+                      help="a robot identity (repeatable; default: none)")
     init.add_argument("--viewer", action="append", default=[], metavar="NAME",
-                      help="a read-only viewer identity (repeatable)")
+                      help="a read-only viewer identity (repeatable; default: none)")
     init.add_argument("--router", default=None, metavar="NAME",
-                      help="a router in the middle: it listens and enforces access control")
-    init.add_argument("--endpoint", default=DEFAULT_ENDPOINT,
-                      help="the listening TLS endpoint (default %(default)s)")
+                      help="a router in the middle: it listens and enforces access control "
+                           "(default: none, the first server listens)")
+    init.add_argument("--endpoint", default=DEFAULT_ENDPOINT, metavar="ENDPOINT",
+                      help="the listening TLS endpoint")
     init.add_argument("--san", action="append", default=[], metavar="HOST",
-                      help="extra subject alternative name (DNS name or IP; repeatable)")
-    init.add_argument("--map", default="default", help="map name (default %(default)s)")
-    init.add_argument("--prefix", default="sogm", help="key prefix (default %(default)s)")
-    init.add_argument("--days", type=int, default=DEFAULT_DAYS,
-                      help="validity of the identities' certificates (default %(default)s)")
+                      help="extra subject alternative name (DNS name or IP; repeatable; "
+                           "default: none beyond localhost and 127.0.0.1)")
+    init.add_argument("--map", default="default", help="map name")
+    init.add_argument("--prefix", default="sogm", help="key prefix")
+    init.add_argument("--days", type=int, default=DEFAULT_DAYS, metavar="DAYS",
+                      help="validity of the identities' certificates (days)")
     init.add_argument("--force", action="store_true", help="overwrite an existing PKI")
-    add = sub.add_parser("add", help="issue one more identity with the existing CA")
-    add.add_argument("dir", type=Path)
+    add = command(sub, "add", "issue one more identity with the existing CA")
+    add.add_argument("dir", type=Path, help="the PKI directory")
     who = add.add_mutually_exclusive_group(required=True)
-    who.add_argument("--robot", metavar="NAME")
-    who.add_argument("--viewer", metavar="NAME")
-    who.add_argument("--server", metavar="NAME")
-    renew = sub.add_parser("renew", help="a new key and certificate for an identity")
-    renew.add_argument("dir", type=Path)
-    renew.add_argument("name")
-    renew.add_argument("--days", type=int, default=None)
-    remove = sub.add_parser("remove", help="drop an identity from the site's access control")
-    remove.add_argument("dir", type=Path)
-    remove.add_argument("name")
-    show = sub.add_parser("show", help="list the identities and their certificates' validity")
-    show.add_argument("dir", type=Path)
-    return p
+    who.add_argument("--robot", metavar="NAME", help="a robot identity")
+    who.add_argument("--viewer", metavar="NAME", help="a read-only viewer identity")
+    who.add_argument("--server", metavar="NAME", help="one more map server identity")
+    renew = command(sub, "renew", "a new key and certificate for an identity")
+    renew.add_argument("dir", type=Path, help="the PKI directory")
+    renew.add_argument("name", help="the identity")
+    renew.add_argument("--days", type=int, default=None, metavar="DAYS",
+                       help="validity of the new certificate (days; default: the PKI's)")
+    remove = command(sub, "remove", "drop an identity from the site's access control")
+    remove.add_argument("dir", type=Path, help="the PKI directory")
+    remove.add_argument("name", help="the identity")
+    show = command(sub, "show", "list the identities and their certificates' validity")
+    show.add_argument("dir", type=Path, help="the PKI directory")
 
 
 def _summary(pki: Pki) -> str:
@@ -370,8 +375,13 @@ def _summary(pki: Pki) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``sogm-service certs ...``; returns the exit code."""
-    args = build_parser().parse_args(argv)
+    """sogm-service certs with these arguments; returns the exit code."""
+    from sogm_service.apps import cli
+
+    return cli.main(["certs", *(sys.argv[1:] if argv is None else argv)])
+
+
+def run(args: argparse.Namespace) -> int:
     try:
         if args.action == "init":
             pki = init_pki(args.dir, server_names=args.server, robot_names=args.robot,
@@ -393,8 +403,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             pki = Pki.load(args.dir)
     except PkiError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        return fail(args.command_words, str(e))
     print(_summary(pki))
     return 0
 

@@ -22,10 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
-
-PNG_LAYER_LIMIT = 16
+from sogm_service.apps.options import command, require_extra
 
 
 @dataclass
@@ -48,38 +45,55 @@ class DemoResult:
     moving: dict[str, Any] = field(default_factory=dict)  # the forgetting person layer
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sogm-service demo", description=__doc__.split("\n")[0])
-    p.add_argument("--world", choices=["warehouse", "tabletop"], default="warehouse")
-    p.add_argument("--tabletop", action="store_true", help="the paper's table-top scene")
-    p.add_argument("--robots", type=int, default=3)
-    p.add_argument("--duration", type=float, default=60.0, help="simulated seconds")
-    p.add_argument("--speed", type=float, default=3.0,
-                   help="simulated seconds per wall second (default %(default)s)")
-    p.add_argument("--rate", type=float, default=4.0, help="sensor rate per robot (Hz)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("demo-out"))
+def add_parser(subparsers: Any) -> None:
+    p = command(subparsers, "demo", "embedded demo: a server and a simulated fleet on 127.0.0.1",
+                description="A map server and a simulated fleet on 127.0.0.1, end to end: "
+                            "robots publish ISMs and poses like real clients, then the map is "
+                            "queried like a client would, with pictures in --out.",
+                quiet_long=False)  # --quiet is the demo's: no progress bar
+    p.add_argument("--world", choices=["warehouse", "tabletop"], default="warehouse",
+                   help="the simulated scene")
+    p.add_argument("--tabletop", action="store_true",
+                   help="the paper's table-top scene (= --world tabletop)")
+    p.add_argument("--robots", type=int, default=3, metavar="N", help="robots in the fleet")
+    p.add_argument("--duration", type=float, default=60.0, metavar="S",
+                   help="simulated seconds")
+    p.add_argument("--speed", type=float, default=3.0, metavar="X",
+                   help="simulated seconds per wall second")
+    p.add_argument("--rate", type=float, default=4.0, metavar="HZ",
+                   help="sensor rate per robot (Hz)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the world and the fleet")
+    p.add_argument("--out", type=Path, default=Path("demo-out"), metavar="DIR",
+                   help="folder of the pictures, the tile store and summary.json")
     p.add_argument("--fast", action="store_true",
                    help="do not pace the fleet in real time (as fast as the server fuses)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--view", action="store_true",
-                   help="watch the fleet map live in the browser (sogm-service view); after "
-                        "the run the map stays up until Ctrl-C")
+                   help="watch the fleet map live in the browser (sogm-service view; needs the "
+                        "viewer extra); after the run the map stays up until Ctrl-C")
     p.add_argument("--http", default="127.0.0.1:8080", metavar="HOST:PORT",
-                   help="where --view serves its page (default %(default)s, loopback)")
+                   help="where --view serves its page (loopback)")
     p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
                    help="drive the fleet and the queries into a running server instead of an "
                         "embedded one: every session of the demo opens from FILE as it is "
-                        "(its map must be --map)")
-    p.add_argument("--map", default="demo", help="map name (default %(default)s)")
+                        "(its map must be --map; default: none)")
+    p.add_argument("--map", default="demo", help="map name")
     p.add_argument("--secure", action="store_true",
                    help="run everything through a fresh dev PKI (DIR/pki): mutual TLS and the "
                         "access-control rules of 'sogm-service certs', one identity per robot")
-    return p
+    p.set_defaults(handler=run)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """sogm-service demo with these arguments."""
+    from sogm_service.apps import cli
+
+    return cli.main(["demo", *(sys.argv[1:] if argv is None else argv)])
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.view:
+        require_extra("viewer", "demo --view")
     world = "tabletop" if args.tabletop else args.world
     result = run_demo(world=world, robots=args.robots, duration_s=args.duration,
                       rate_hz=args.rate, seed=args.seed, out=args.out,
@@ -118,7 +132,7 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     if secure:
         configs = _dev_pki(out / "pki", endpoint, robots)
         zenoh = {"config_file": str(configs["server"])}
-    from sogm_service.apps.demo_moving import forgetting_config
+    from sogm_service.apps.demo_person import forgetting_config
 
     server: Any
     if zenoh_config is not None:  # a running server: every session from the file
@@ -271,7 +285,7 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
     box: dict[str, Any] = {}
 
     def fleet() -> None:
-        from sogm_service.apps.demo_moving import demo_observers, demo_sensors
+        from sogm_service.apps.demo_person import demo_observers, demo_sensors
 
         box["stats"] = run_fleet(world, endpoint, robots=robots, duration_s=duration_s,
                                  rate_hz=rate_hz, seed=seed, realtime=realtime, speed=speed,
@@ -305,7 +319,17 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
 
 def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet: Any,
             world_name: str, robots: int, duration_s: float, out: Path) -> DemoResult:
-    from sogm_service.apps.demo_moving import MOVING_LAYERS, report_moving
+    from sogm_service.apps.demo_person import MOVING_LAYERS, report_moving
+    from sogm_service.apps.demo_pictures import (
+        class_iou,
+        ground_truth_image,
+        obstacle_layers,
+        robot_markers,
+        robot_submaps,
+        write_fused,
+        write_layers,
+        write_supercells,
+    )
 
     files: list[str] = []
     info = client.info()
@@ -313,17 +337,17 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
     layers = [n for n in info.layers if n not in MOVING_LAYERS]  # reported on their own
     full = _world_window(world)
     sub = client.submap(**full, layers=layers, encoding="prob_f32")
-    markers = _robot_markers(watcher)
-    files += _write_layers(sub, out, markers)
-    files += _write_fused(client, full, obstacle_layers(layers), out, markers)
+    markers = robot_markers(watcher)
+    files += write_layers(sub, out, markers)
+    files += write_fused(client, full, obstacle_layers(layers), out, markers)
     from sogm_service.apps.render import class_legend, save_map_png
 
-    save_map_png(out / "ground_truth.png", _ground_truth_image(world, layers), world.geometry,
+    save_map_png(out / "ground_truth.png", ground_truth_image(world, layers), world.geometry,
                  title="ground truth (the simulator's world)", legend=class_legend(layers),
                  robots=markers)
     files.append("ground_truth.png")
-    latency = _robot_submaps(client, watcher, world.geometry.resolution, out, files, layers)
-    supercells = _write_supercells(client, world, watcher, out, files, layers)
+    latency = robot_submaps(client, watcher, world.geometry.resolution, out, files, layers)
+    supercells = write_supercells(client, world, watcher, out, files, layers)
     counters, rejected = server.stats.snapshot()
     return DemoResult(
         world=world_name, robots=robots, duration_s=duration_s, isms_published=fleet.isms,
@@ -339,134 +363,6 @@ def _world_window(world: Any) -> dict[str, Any]:
     x, y = g.centre()
     return dict(x=x, y=y, yaw=g.origin.yaw, width=w, height=h,
                 resolution=g.resolution)
-
-
-def class_iou(world: Any, layers: list[str], probs: npt.NDArray[np.float32]) -> dict[str, float]:
-    """Per layer: IoU of ``p > 0.5`` against the ground truth, over the cells it observed.
-
-    ``obstacle`` (the laser's layer) is compared with everything standing on the floor; a
-    camera class with the world's class of that name.  Unobserved cells (log-odds 0) are left
-    out: the fleet cannot be blamed for what it never saw.
-    """
-    out: dict[str, float] = {}
-    for k, layer in enumerate(layers):
-        name = layer.rsplit("/", 1)[-1]
-        if name == "obstacle":
-            truth = world.occupied
-        elif name in world.classes:
-            truth = world.mask(name)
-        else:
-            continue
-        p = probs[k]
-        seen = np.abs(p - 0.5) > 1e-3
-        pred = (p > 0.5) & seen
-        gt = truth & seen
-        union = np.count_nonzero(pred | gt)
-        out[layer] = round(float(np.count_nonzero(pred & gt) / union), 4) if union else 0.0
-    return out
-
-
-def _write_png(path: Path, img: npt.NDArray[np.uint8]) -> str:
-    import cv2
-
-    cv2.imwrite(str(path), img)
-    return path.name
-
-
-def _robot_markers(watcher: _FleetWatcher) -> list[tuple[str, float, float, float | None]]:
-    return [(robot, pose.x, pose.y, pose.yaw) for robot, pose in sorted(watcher.poses.items())]
-
-
-def _write_layers(sub: Any, out: Path, robots: list[Any]) -> list[str]:
-    from sogm_service.apps.render import save_classes_png, save_grid_png
-
-    p = sub.probabilities()
-    files = []
-    for k, layer in enumerate(sub.layers[:PNG_LAYER_LIMIT]):
-        name = f"layer_{layer.replace('/', '_')}.png"
-        save_grid_png(out / name, p[k], sub.geometry, title=f"layer {layer}", robots=robots)
-        files.append(name)
-    save_classes_png(out / "classes.png", p, sub.geometry, list(sub.layers), robots=robots)
-    files.append("classes.png")
-    return files
-
-
-def obstacle_layers(layers: list[str]) -> list[str]:
-    """The layers that say "something stands here" (all but free-space classes like floor)."""
-    return [n for n in layers if n.rsplit("/", 1)[-1] not in ("floor", "free")] or layers
-
-
-def _write_fused(client: Any, window: dict[str, Any], layers: list[str],
-                 out: Path, robots: list[Any]) -> list[str]:
-    """Eq. 6 over the obstacle-like layers: P_B (same evidence from several sensors) and P_M."""
-    from sogm_service.apps.render import save_grid_png
-
-    files = []
-    for method in ("bayes", "max"):
-        fused = client.fused(method=method, **window, layers=layers, encoding="prob_f32")
-        name = f"fused_{method}.png"
-        save_grid_png(out / name, fused.probabilities(), fused.geometry,
-                      title=f"fused ({method}, Eq. 6) over {', '.join(layers)}", robots=robots)
-        files.append(name)
-    return files
-
-
-def _ground_truth_image(world: Any, layers: list[str]) -> npt.NDArray[np.uint8]:
-    """Ground truth in the colours ``classes.png`` gives the same class (walls as obstacle)."""
-    from sogm_service.apps.render import UNKNOWN_BGR, class_colors
-
-    palette = class_colors(len(layers))
-    names = [n.rsplit("/", 1)[-1] for n in layers]
-    colors = np.zeros((len(world.classes), 3), np.uint8)
-    for k, cls in enumerate(world.classes):
-        name = cls if cls in names else "obstacle"
-        colors[k] = palette[names.index(name)] if name in names else (90, 90, 90)
-    colors[0] = UNKNOWN_BGR
-    return np.ascontiguousarray(colors[world.labels][::-1])
-
-
-def _robot_submaps(client: Any, watcher: _FleetWatcher, map_res: float, out: Path,
-                   files: list[str], layers: list[str] | None = None) -> dict[str, float]:
-    """A rotated window around each robot at 2x the map's cell size; timed queries."""
-    from sogm_service.apps.render import save_classes_png
-
-    robots = _robot_markers(watcher)
-    timings: list[float] = []
-    res = 2 * map_res
-    side = 256 * res
-    for robot, pose in sorted(watcher.poses.items()):
-        window = dict(x=pose.x, y=pose.y, yaw=pose.yaw, width=side, height=side, resolution=res)
-        for _ in range(10):
-            t0 = time.perf_counter()
-            sub = client.submap(**window, layers=layers, encoding="prob_u8")
-            timings.append(time.perf_counter() - t0)
-        save_classes_png(out / f"submap_{robot}.png", sub.probabilities(), sub.geometry,
-                         list(sub.layers), title=f"sub-map around {robot}", robots=robots)
-        files.append(f"submap_{robot}.png")
-    if not timings:
-        return {}
-    ms = np.array(timings) * 1e3
-    return {"count": len(ms), "p50": round(float(np.median(ms)), 3),
-            "p99": round(float(np.percentile(ms, 99)), 3)}
-
-
-def _write_supercells(client: Any, world: Any, watcher: _FleetWatcher, out: Path,
-                      files: list[str], layers: list[str] | None = None) -> int | None:
-    """The SEVDS graph of a 128 x 128 cell window around the first robot, over the fused map."""
-    from sogm_service.apps.render import save_graph_png
-
-    if not watcher.poses:
-        return None
-    pose = watcher.poses[sorted(watcher.poses)[0]]
-    res = world.geometry.resolution
-    window = dict(x=pose.x, y=pose.y, yaw=0.0, width=128 * res, height=128 * res,
-                  resolution=res)
-    reply = client.supercells(**window, labels=True, layers=layers)
-    fused = client.fused(method="max", **window, layers=obstacle_layers(reply.layers),
-                         encoding="prob_f32")
-    save_graph_png(out / "supercells.png", reply, fused, robots=_robot_markers(watcher))
-    files.append("supercells.png")
-    return len(reply.nodes)
 
 
 def _print_summary(r: DemoResult, out: Path) -> None:

@@ -1,12 +1,12 @@
-"""``sogm-service replay carmen FILE``: a recorded laser log replayed into a map server.
+"""sogm-service replay carmen|rosbag FILE: a recorded log replayed into a map server.
 
-Each front-laser scan of the log (FLASER or ROBOTLASER1, with its corrected pose) becomes the
-ISM of a laser inverse sensor model (free along each beam, occupied at the hit, unknown beyond;
-:mod:`sogm_service.adapters.laser`) published on ``ism/<robot>/laser/obstacle`` with its
-pose on ``pose/<robot>``, exactly as a live robot would.  Without ``--connect`` the server is
-embedded (in this process, on 127.0.0.1); the resulting map is written as a PNG (and optionally
-``.npy``).  A log without any usable scan is refused with one line and exit status 2; the
-summary counts every line type read and skipped.
+Each front-laser scan of a CARMEN log (FLASER or ROBOTLASER1, with its corrected pose) becomes
+the ISM of a laser inverse sensor model (free along each beam, occupied at the hit, unknown
+beyond) published on ism/<robot>/laser/obstacle with its pose on pose/<robot>, exactly as a
+live robot would; a ROS bag's LaserScan (posed by /tf) and OccupancyGrid topics likewise.
+Without --connect or --zenoh-config the server is embedded (in this process, on 127.0.0.1);
+the resulting map is written as a PNG (and optionally .npy).  A log without any usable scan is
+refused with one line and exit status 2; the summary counts every line type read and skipped.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from sogm_service.apps.options import command, fail, require_extra, subcommands
 
 
 @dataclass
@@ -39,42 +41,51 @@ class NoScansError(ValueError):
 
 def _server_args(p: argparse.ArgumentParser) -> None:
     """Where the replay goes: an embedded server unless told a running one."""
-    p.add_argument("--connect", default=None,
-                   help="endpoint of a running server (default: an embedded one)")
+    p.add_argument("--connect", default=None, metavar="ENDPOINT",
+                   help="Zenoh endpoint of a running server (default: an embedded one)")
     p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
                    help="Zenoh JSON5 config of a running server's site, honoured as is (e.g. "
-                        "a robot's from 'sogm-service certs'); replaces --connect")
+                        "a robot's from 'sogm-service certs'); replaces --connect "
+                        "(default: none)")
     p.add_argument("--map", default="default", help="map name of that server")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sogm-service replay", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="format", required=True)
-    c = sub.add_parser("carmen",
-                       help="a CARMEN log (FLASER or ROBOTLASER1 lines, gzip or plain)")
-    c.add_argument("file", type=Path)
+def add_parser(subparsers: Any) -> None:
+    p = command(subparsers, "replay", "replay a CARMEN laser log or a ROS bag into a map",
+                description=__doc__ or "")
+    sub = subcommands(p, "format", "FORMAT")
+    c = command(sub, "carmen", "a CARMEN log (FLASER or ROBOTLASER1 lines, gzip or plain)")
+    c.add_argument("file", type=Path, help="the log (.gz or plain text)")
     _server_args(c)
-    c.add_argument("--resolution", type=float, default=0.05, help="ISM and map cell size (m)")
-    c.add_argument("--limit", type=int, default=None, help="replay at most this many scans")
-    c.add_argument("--speed", type=float, default=0.0,
-                   help="pace relative to the log's stamps (0: as fast as possible)")
-    c.add_argument("--robot", default="carmen")
+    c.add_argument("--resolution", type=float, default=0.05, metavar="M",
+                   help="ISM and map cell size (m)")
+    c.add_argument("--limit", type=int, default=None, metavar="N",
+                   help="replay at most this many scans (default: all)")
+    c.add_argument("--speed", type=float, default=0.0, metavar="X",
+                   help="pace relative to the log's stamps, 1 = real time (0: as fast as "
+                        "possible)")
+    c.add_argument("--robot", default="carmen", help="robot name of the scans' ISMs and poses")
     c.add_argument("--ism-grid", choices=["lattice", "sensor"], default="lattice",
                    help="cast each laser ISM on the map's cells (lattice: sharp, no "
                         "resampling; --resolution must be the map's) or on a sensor-aligned "
                         "grid the server resamples (sensor)")
-    c.add_argument("--png", type=Path, default=Path("carmen-map.png"))
-    c.add_argument("--npy", type=Path, default=None)
-    b = sub.add_parser("rosbag", help="a ROS 1 bag or a ROS 2 bag (sqlite3 or mcap): "
-                                      "LaserScan + /tf and OccupancyGrid topics")
+    c.add_argument("--png", type=Path, default=Path("carmen-map.png"), metavar="FILE",
+                   help="picture of the resulting map")
+    c.add_argument("--npy", type=Path, default=None, metavar="FILE",
+                   help="the map's probabilities as a float32 array (default: none)")
+    b = command(sub, "rosbag", "a ROS 1 bag or a ROS 2 bag (sqlite3 or mcap): LaserScan + "
+                               "/tf and OccupancyGrid topics (needs the ros2 extra)")
     b.add_argument("file", type=Path, help="the bag (a ROS 2 bag is its directory)")
     _server_args(b)
     b.add_argument("--map-frame", default="map", help="the TF frame of the map")
-    b.add_argument("--resolution", type=float, default=0.05, help="laser ISM cell size (m)")
+    b.add_argument("--resolution", type=float, default=0.05, metavar="M",
+                   help="laser ISM cell size (m)")
     b.add_argument("--robot", default="rosbag", help="robot name of the laser scans")
-    b.add_argument("--png", type=Path, default=Path("rosbag-map.png"))
-    b.add_argument("--npy", type=Path, default=None)
-    return p
+    b.add_argument("--png", type=Path, default=Path("rosbag-map.png"), metavar="FILE",
+                   help="picture of the resulting map")
+    b.add_argument("--npy", type=Path, default=None, metavar="FILE",
+                   help="the map's probabilities as a float32 array (default: none)")
+    p.set_defaults(handler=run)
 
 
 _ZENOH_CONFIG: ContextVar[Path | None] = ContextVar("zenoh_config", default=None)
@@ -83,7 +94,13 @@ comes from that file, as it is."""
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """sogm-service replay with these arguments."""
+    from sogm_service.apps import cli
+
+    return cli.main(["replay", *(sys.argv[1:] if argv is None else argv)])
+
+
+def run(args: argparse.Namespace) -> int:
     if args.zenoh_config is not None:  # a running server, reached as the file says
         args.connect = args.connect or f"(the endpoints of {args.zenoh_config})"
     token = _ZENOH_CONFIG.set(args.zenoh_config)
@@ -95,8 +112,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     if not args.file.exists():
-        print(f"sogm-service replay: no such file {args.file}", file=sys.stderr)
-        return 2
+        return fail(args.command_words, f"no such file {args.file}")
+    if args.format == "rosbag":
+        require_extra("ros2", "replay rosbag")
     try:
         if args.format == "rosbag":
             result = replay_rosbag(args.file, endpoint=args.connect, map_name=args.map,
@@ -107,8 +125,7 @@ def _replay(args: argparse.Namespace) -> int:
                                    resolution=args.resolution, limit=args.limit,
                                    speed=args.speed, robot=args.robot, grid=args.ism_grid)
     except NoScansError as exc:
-        print(f"sogm-service replay: {args.file}: {exc}", file=sys.stderr)
-        return 2
+        return fail(args.command_words, f"{args.file}: {exc}")
     _write(result, args.png, args.npy)
     g = result.geometry
     print(f"replayed {result.scans} scans ({result.malformed_lines} malformed lines skipped); "

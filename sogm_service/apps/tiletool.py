@@ -1,6 +1,6 @@
-"""``sogm-service tiles ls|export|import``: look at, export and import stored tiles.
+"""sogm-service tiles ls|export|import: look at, export and import stored tiles.
 
-Examples::
+Examples:
 
     sogm-service tiles ls /var/lib/sogm/tiles                 # one line per tile, bad files flagged
     sogm-service tiles ls /var/lib/sogm/tiles --verify        # also check every payload checksum
@@ -9,15 +9,15 @@ Examples::
     sogm-service tiles export DIR --box -5 -5 20 10 --layers obstacle --out box.png
     sogm-service tiles import backup/ --into /var/lib/sogm/tiles --on-conflict newer
 
-``ls`` and ``export`` only read (no lock, no quarantine): they work on a live server's store.
-``import`` takes the store's lock, so stop the server first; every file is fully validated and a
-rejected one is reported with its reason and left where it was.
+ls and export only read (no lock, no quarantine): they work on a live server's store.
+import takes the store's lock, so stop the server first; every file is fully validated and a
+rejected one is reported with its reason and left where it was.  ls exits 1 when it lists a bad
+file, import when it rejected one; a refusal (no such directory, a store in use) exits 2.
 
 PNG export: one image per layer, probabilities as grey (free white, occupied black), unknown
-(log-odds exactly 0, or no tile) in a distinct blue tint (:mod:`sogm_service.apps.render`),
-north up.
-``.npy`` export: the stacked ``(N, H, W)`` int16 fixed-point log-odds (``logodds.SCALE`` units
-per nat, 0 = unknown), with a ``.json`` sidecar naming the layers, resolution and origin.
+(log-odds exactly 0, or no tile) in a distinct blue tint, north up.
+.npy export: the stacked (N, H, W) int16 fixed-point log-odds (1000 units per nat, 0 =
+unknown), with a .json sidecar naming the layers, resolution and origin.
 """
 
 from __future__ import annotations
@@ -37,17 +37,17 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
+from sogm_service.apps.options import PROG, command, fail, standalone, subcommands
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
-from sogm_service.store.directory import DirectoryStore, lock_directory
+from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.format import (
     SUFFIX,
     StoredTile,
     TileHeader,
     read_tile_file,
     read_tile_header,
-    tile_from_bytes,
 )
 from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
@@ -57,73 +57,89 @@ MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an expor
 
 
 class ToolError(Exception):
-    """A user-facing failure: printed as one line, exit code 1."""
+    """A user-facing failure: printed as one line, exit status 2."""
 
 
 # -- parser ---------------------------------------------------------------------------------
+def add_parser(subparsers: Any) -> None:
+    add_tiles_parser(subparsers)
+
+
 def add_tiles_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``tiles`` with its sub-commands to an argparse ``add_subparsers()`` object."""
-    tiles = subparsers.add_parser("tiles", help="list, export and import stored tiles",
-                                  description=__doc__,
-                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    tiles = command(subparsers, "tiles", "list, export and import stored tiles",
+                    description=__doc__ or "")
     _fill_parser(tiles)
     return tiles
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sogm-service tiles", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    """The tiles command on its own (for scripts and tests)."""
+    parser = standalone(f"{PROG} tiles", description=__doc__ or "")
     _fill_parser(parser)
     return parser
 
 
 def _fill_parser(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="tiles_command", required=True)
-    ls = sub.add_parser("ls", help="list the tiles of a store directory")
-    ls.add_argument("directory", type=Path)
-    ls.add_argument("--verify", action="store_true", help="also check every payload")
+    p.set_defaults(handler=run_tiles)
+    sub = subcommands(p, "tiles_command")
+    ls = command(sub, "ls", "list the tiles of a store directory")
+    ls.add_argument("directory", type=Path, help="the store directory")
+    ls.add_argument("--verify", action="store_true",
+                    help="also read every payload and check its checksum")
     _map_filter_args(ls)
-    ex = sub.add_parser("export", help="write a tile or a region to PNG or .npy")
-    ex.add_argument("directory", type=Path)
+    ex = command(sub, "export", "write a tile or a region to PNG or .npy")
+    ex.add_argument("directory", type=Path, help="the store directory")
     ex.add_argument("--out", type=Path, required=True,
                     help="file.png (one <stem>_<layer>.png per layer) or file.npy")
     where = ex.add_mutually_exclusive_group(required=True)
-    where.add_argument("--tile", type=int, nargs=2, metavar=("I", "J"))
+    where.add_argument("--tile", type=int, nargs=2, metavar=("I", "J"),
+                       help="one tile, by its indices on the tile lattice")
     where.add_argument("--range", type=int, nargs=4, metavar=("I0", "J0", "I1", "J1"),
-                       help="tiles I0..I1 x J0..J1 inclusive")
+                       help="tiles I0..I1 x J0..J1 inclusive (tile indices)")
     where.add_argument("--box", type=float, nargs=4, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
-                       help="metric box in the map frame")
-    ex.add_argument("--layers", default=None, help="comma-separated layers (default all)")
-    ex.add_argument("--scale", type=int, default=1, help="PNG pixels per cell")
+                       help="metric box in the map frame (m)")
+    ex.add_argument("--layers", default=None, metavar="A,B",
+                    help="comma-separated layers (default: all)")
+    ex.add_argument("--scale", type=int, default=1, metavar="PX",
+                    help="PNG pixels per cell")
     _map_filter_args(ex)
-    im = sub.add_parser("import", help="validate tile files and copy them into a store")
+    im = command(sub, "import", "validate tile files and copy them into a store")
     im.add_argument("sources", type=Path, nargs="+", help="tile files or directories")
-    im.add_argument("--into", type=Path, required=True, help="destination store directory")
+    im.add_argument("--into", type=Path, required=True, metavar="DIR",
+                    help="destination store directory")
     im.add_argument("--on-conflict", choices=["skip", "overwrite", "newer"], default="skip",
-                    help="when the store has the tile already (default %(default)s)")
+                    help="when the store has the tile already: keep it, replace it, or "
+                         "replace it by a newer stamp")
 
 
 def _map_filter_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--map", default=None, help="only this map")
-    p.add_argument("--resolution", type=float, default=None, help="only this resolution")
-    p.add_argument("--tile-size", type=int, default=None, help="only this tile size")
+    p.add_argument("--map", default=None, help="only this map (default: any)")
+    p.add_argument("--resolution", type=float, default=None, metavar="M",
+                   help="only this cell size in m (default: any)")
+    p.add_argument("--tile-size", type=int, default=None, metavar="CELLS",
+                   help="only this tile edge in cells (default: any)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point used by ``sogm-service tiles ...`` (cli.py delegates here)."""
-    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-    return run_tiles(args)
+    """sogm-service tiles with these arguments."""
+    from sogm_service.apps import cli
+
+    return cli.main(["tiles", *(sys.argv[1:] if argv is None else argv)])
 
 
 def run_tiles(args: argparse.Namespace, out: TextIO | None = None) -> int:
-    """Run a parsed ``tiles`` command; 0 = success, 1 = failure or rejected files."""
+    """Run a parsed ``tiles`` command: 0 = success, 1 = bad or rejected files listed,
+    2 = refused (one line on stderr)."""
     out = sys.stdout if out is None else out
+    from sogm_service.apps.tileimport import cmd_import
+
     handler = {"ls": cmd_ls, "export": cmd_export, "import": cmd_import}[args.tiles_command]
     try:
         return handler(args, out)
     except (ToolError, StoreLockedError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        words = getattr(args, "command_words", f"tiles {args.tiles_command}")
+        return fail(words, str(exc))
 
 
 # -- scanning -------------------------------------------------------------------------------
@@ -364,77 +380,3 @@ def _write_pngs(region: Region, out: Path, scale: int) -> list[Path]:
 def _safe(name: str) -> str:
     """A layer name as a file-name fragment (``robot1/laser/obstacle`` -> ``robot1-laser-...``)."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", name).strip("-.") or "layer"
-
-
-# -- import ---------------------------------------------------------------------------------
-def cmd_import(args: argparse.Namespace, out: TextIO) -> int:
-    dest: Path = args.into
-    dest.mkdir(parents=True, exist_ok=True)
-    lock_fd = lock_directory(dest)
-    try:
-        stores: dict[MapKey, DirectoryStore] = {}
-        counts = {"imported": 0, "skipped": 0, "rejected": 0}
-        from tqdm import tqdm
-
-        files = _source_files(args.sources)
-        for path in tqdm(files, desc="tiles import", unit="tile", file=sys.stderr,
-                         disable=None, leave=False):
-            outcome = _import_one(path, stores, dest, args.on_conflict)
-            counts[outcome.split(":")[0]] += 1
-            print(f"{outcome.split(':')[0]:<8} {path}{_detail(outcome)}", file=out)
-    finally:
-        os.close(lock_fd)
-    print(", ".join(f"{v} {k}" for k, v in counts.items()), file=out)
-    return 1 if counts["rejected"] else 0
-
-
-def _detail(outcome: str) -> str:
-    _, _, detail = outcome.partition(":")
-    return f": {detail}" if detail else ""
-
-
-def _source_files(sources: list[Path]) -> list[Path]:
-    files: list[Path] = []
-    for src in sources:
-        if src.is_dir():
-            files.extend(sorted(src.glob(f"*{SUFFIX}")))
-        elif src.is_file():
-            files.append(src)
-        else:
-            raise ToolError(f"{src} does not exist")
-    return files
-
-
-def _import_one(path: Path, stores: dict[MapKey, DirectoryStore], dest: Path,
-                policy: str) -> str:
-    """One file -> ``"imported"``, ``"skipped:<why>"`` or ``"rejected:<reason>"``."""
-    try:
-        blob = path.read_bytes()
-        header = tile_from_bytes(blob).header
-        store = _store_for(header, stores, dest)
-        existing = store.indexed().get(header.index)
-        if existing is not None and not _replace(existing.header, header, policy):
-            return f"skipped:tile {header.index} exists (stamp {existing.header.stamp})"
-        store.write_bytes(blob)
-    except (TileFormatError, OSError) as exc:
-        return f"rejected:{exc.reason if isinstance(exc, TileFormatError) else exc}"
-    return "imported"
-
-
-def _replace(old: TileHeader, new: TileHeader, policy: str) -> bool:
-    return policy == "overwrite" or (policy == "newer" and new.stamp > old.stamp)
-
-
-def _store_for(header: TileHeader, stores: dict[MapKey, DirectoryStore],
-               dest: Path) -> DirectoryStore:
-    """The destination store of the tile's map; its frame is the one already stored, if any."""
-    key = (header.map_name, header.resolution, header.tile_size)
-    if key not in stores:
-        probe = DirectoryStore(dest, *key, frame=None, readonly=True)
-        frames = {info.header.frame for info in probe.index().values()}
-        frame = frames.pop() if len(frames) == 1 else header.frame
-        store = DirectoryStore(dest, *key, frame=frame, lock=False)
-        store.index()
-        stores[key] = store
-    return stores[key]
-

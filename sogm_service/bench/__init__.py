@@ -90,23 +90,30 @@ def build_parser(names: list[str]) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sogm-service bench",
                                 description="Performance suite: ratios against baselines "
                                             "measured in the same run.")
+    add_arguments(p, names)
+    return p
+
+
+def add_arguments(p: argparse.ArgumentParser, names: list[str]) -> None:
+    """The options of the suite (the CLI adds them to its own subcommand)."""
     p.add_argument("names", nargs="*", metavar="NAME",
                    help=f"benchmarks to run (default all): {', '.join(names)}")
     p.add_argument("--quick", action="store_true",
                    help="few repeats, under a minute (CI smoke; numbers are rough)")
-    p.add_argument("--json", metavar="FILE", default=None, help="write the results here")
+    p.add_argument("--json", metavar="FILE", default=None,
+                   help="write the results here (default: none)")
     p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
                    help="open the client side's sessions (queries, publishing robots) from this "
                         "Zenoh config, honoured as is but for its endpoints (the bench's "
                         "servers listen on ephemeral ports); e.g. a robot's from "
-                        "'sogm-service certs'")
+                        "'sogm-service certs' (default: plain TCP on loopback)")
     p.add_argument("--server-zenoh-config", type=Path, default=None, metavar="FILE",
                    help="the same for the processes that stand in for the server (serve, the "
-                        "raw baselines); its listen endpoint's protocol (tls) is kept")
+                        "raw baselines); its listen endpoint's protocol (tls) is kept "
+                        "(default: plain TCP on loopback)")
     p.add_argument("--secure", action="store_true",
                    help="run through a fresh dev PKI: mutual TLS and the access control of "
                         "'sogm-service certs init' (a server and one robot)")
-    return p
 
 
 def run_one(bench: Benchmark, quick: bool) -> Row:
@@ -121,9 +128,17 @@ def run_one(bench: Benchmark, quick: bool) -> Row:
 
 def main(argv: list[str] | None = None, dev_pki: DevPki | None = None) -> int:
     """The suite; ``dev_pki`` serves ``--secure`` (the CLI passes the certs command's)."""
+    return run(build_parser(names()).parse_args(argv), dev_pki)
+
+
+def names() -> list[str]:
+    return [b.name for b in registry()]
+
+
+def run(args: argparse.Namespace, dev_pki: DevPki | None = None) -> int:
+    """The suite as the parsed options say; the exit status."""
     benches = registry()
     by_name = {b.name: b for b in benches}
-    args = build_parser(list(by_name)).parse_args(argv)
     unknown = [n for n in args.names if n not in by_name]
     if unknown:
         return _usage(f"unknown benchmark(s) {unknown}; choose from {list(by_name)}")

@@ -261,25 +261,40 @@ def _ints(text: str) -> list[int]:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sogm-service eval matching",
                                 description=__doc__.split("\n")[0] if __doc__ else None)
-    p.add_argument("log", nargs="?", type=Path, default=INTEL_LOG,
-                   help=f"a CARMEN log (default {INTEL_LOG})")
-    p.add_argument("--limit", type=int, default=None, help="read at most this many scans")
-    p.add_argument("--start", type=int, default=150, help="first scan matched (warm-up map)")
-    p.add_argument("--stride", type=int, default=1, help="match every k-th scan from --start")
-    p.add_argument("--seed", type=_ints, default=[0],
-                   help="perturbation seeds, e.g. 0,1,2,3: one pass each, pooled in the table")
-    p.add_argument("--resolution", type=float, default=0.05)
-    p.add_argument("--usable-range", type=float, default=8.0, help="ISM range (m)")
-    p.add_argument("--min-inliers", type=_ints, default=[6, 8, 10, 12, 16])
-    p.add_argument("--min-score", type=_floats, default=[0.3])
-    p.add_argument("--min-gain", type=_floats, default=[0.0])
-    p.add_argument("--ratio", type=_floats, default=[1.0],
-                   help="Lowe's ratio values (one matching pass each)")
-    p.add_argument("--margin-cells", type=_floats, default=[0.0],
-                   help="extra window margin values in cells (one pass each)")
-    p.add_argument("--csv", type=Path, default=None, help="write every trial here")
-    p.add_argument("--quiet", action="store_true")
+    add_arguments(p)
     return p
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of eval matching (the CLI adds them to its own subcommand)."""
+    p.add_argument("log", nargs="?", type=Path, default=INTEL_LOG,
+                   help="a CARMEN log, plain or gzip")
+    p.add_argument("--limit", type=int, default=None, metavar="N",
+                   help="read at most this many scans (default: all)")
+    p.add_argument("--start", type=int, default=150, metavar="N",
+                   help="index of the first scan matched (the scans before build the map)")
+    p.add_argument("--stride", type=int, default=1, metavar="K",
+                   help="match every k-th scan from --start")
+    p.add_argument("--seed", type=_ints, default=[0], metavar="S,S",
+                   help="perturbation seeds, e.g. 0,1,2,3: one pass each, pooled in the table")
+    p.add_argument("--resolution", type=float, default=0.05, metavar="M",
+                   help="map and ISM cell size (m)")
+    p.add_argument("--usable-range", type=float, default=8.0, metavar="M",
+                   help="ISM range (m)")
+    p.add_argument("--min-inliers", type=_ints, default=[6, 8, 10, 12, 16], metavar="N,N",
+                   help="acceptance thresholds on the inlier count (keypoints), one table "
+                        "row each")
+    p.add_argument("--min-score", type=_floats, default=[0.3], metavar="X,X",
+                   help="acceptance thresholds on the match score (unitless)")
+    p.add_argument("--min-gain", type=_floats, default=[0.0], metavar="X,X",
+                   help="acceptance thresholds on the score gain over the prior pose (unitless)")
+    p.add_argument("--ratio", type=_floats, default=[1.0], metavar="X,X",
+                   help="Lowe's ratio values (one matching pass each)")
+    p.add_argument("--margin-cells", type=_floats, default=[0.0], metavar="CELLS,CELLS",
+                   help="extra window margin values in cells (one pass each)")
+    p.add_argument("--csv", type=Path, default=None, metavar="FILE",
+                   help="write every trial here (default: none)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def variants_of(ratios: Sequence[float], margins: Sequence[float],
@@ -297,7 +312,11 @@ def variants_of(ratios: Sequence[float], margins: Sequence[float],
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    return run(build_parser().parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate as the parsed options say; the exit status."""
     if not args.log.exists():
         print(f"sogm-service eval matching: no such file {args.log}", file=sys.stderr)
         return 2

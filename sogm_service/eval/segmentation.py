@@ -311,7 +311,7 @@ def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``eval supercells``: run, then print the markdown table and the files."""
     if args.scenes < 1:
-        print("--scenes must be >= 1", file=sys.stderr)
+        print("sogm-service: eval supercells: --scenes must be >= 1", file=sys.stderr)
         return 2
     result = run_supercell_evaluation(args.out, scenes=args.scenes, seed=args.seed,
                                       quick=args.quick, progress=True)

@@ -1,13 +1,13 @@
-"""``sogm-service view``: the live map in a browser (a separate process, another Zenoh client).
+"""sogm-service view: the live map in a browser (a separate process, another Zenoh client).
 
-The viewer connects to a map server like any client (:class:`~sogm_service.client.MapClient`),
-serves one page (plain JavaScript and a canvas, shipped in this package: it works offline) on
-loopback, and pushes tile pictures, robot poses, tile events, ISM footprints and stats over a
-WebSocket.  See :mod:`.app` for how one slow browser is kept from slowing anything else, and
-:mod:`.tiles` for which pictures a view needs.
+The viewer connects to a map server like any client (MapClient), serves one page (plain
+JavaScript and a canvas, shipped in this package: it works offline) on loopback, and pushes
+tile pictures, robot poses, tile events, ISM footprints and stats over a WebSocket.  The app
+module keeps one slow browser from slowing anything else; the tiles module chooses which
+pictures a view needs.
 
-Starlette, uvicorn and websockets are imported only here, so the rest of the package does not
-need them.
+Starlette, uvicorn and websockets (the viewer extra) are imported only when the viewer runs,
+so neither the rest of the package nor this command's help needs them.
 """
 
 from __future__ import annotations
@@ -21,40 +21,53 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sogm_service.apps.options import (
+    PROG,
+    UsageError,
+    command,
+    fail,
+    log_options,
+    require_extra,
+    standalone,
+)
+
 DEFAULT_HTTP = "127.0.0.1:8080"
 _WS = "websockets-sansio"  # uvicorn's newer implementation on the websockets library
-_MISSING = ("the viewer needs starlette, uvicorn and websockets: "
-            "pip install 'sogm-service[viewer]'")
+DESCRIPTION = "Serve a live view of a map in the browser (loopback only by default)."
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="sogm-service view",
-        description="Serve a live view of a map in the browser (loopback only by default).")
-    p.add_argument("--connect", default="tcp/127.0.0.1:7447",
-                   help="Zenoh endpoint of the map server or a router (default %(default)s)")
-    p.add_argument("--http", default=DEFAULT_HTTP,
-                   help="HOST:PORT the page is served on (default %(default)s; port 0: any)")
-    p.add_argument("--map", default="default", help="map name (default %(default)s)")
-    p.add_argument("--prefix", default="sogm", help="key prefix (default %(default)s)")
-    p.add_argument("--zenoh-config", type=Path, default=None,
-                   help="Zenoh JSON5 config used as is (TLS, certificates, access control)")
-    p.add_argument("--refresh", type=float, default=1.0,
-                   help="seconds between refreshes of the visible tiles (default %(default)s)")
-    p.add_argument("--poll", type=float, default=1.0,
-                   help="seconds between info/stats polls (default %(default)s)")
-    p.add_argument("--timeout", type=float, default=2.0, help="query timeout (s)")
-    p.add_argument("--pose-key", default="pose/**", help="robot poses (default %(default)s)")
-    p.add_argument("--ism-key", default="ism/**",
-                   help="ISMs whose footprints are drawn (default %(default)s; '' for none)")
-    p.add_argument("--allow-host", action="append", default=[],
-                   help="another Host name the page may be reached by (a reverse proxy's)")
+def add_parser(subparsers: Any) -> None:
+    p = command(subparsers, "view", "the live map viewer in the browser (loopback only by "
+                                    "default; needs the viewer extra)", description=DESCRIPTION)
+    _arguments(p)
+    p.set_defaults(handler=run)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT",
+                   help="Zenoh endpoint of the map server or a router")
+    p.add_argument("--http", default=DEFAULT_HTTP, metavar="HOST:PORT",
+                   help="where the page is served (port 0: any free one)")
+    p.add_argument("--map", default="default", help="map name")
+    p.add_argument("--prefix", default="sogm", help="key prefix")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                   help="Zenoh JSON5 config used as is: TLS, certificates, access control "
+                        "(default: none)")
+    p.add_argument("--refresh", type=float, default=1.0, metavar="S",
+                   help="seconds between refreshes of the visible tiles")
+    p.add_argument("--poll", type=float, default=1.0, metavar="S",
+                   help="seconds between info/stats polls")
+    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="query timeout (s)")
+    p.add_argument("--pose-key", default="pose/**", metavar="KEY", help="robot poses")
+    p.add_argument("--ism-key", default="ism/**", metavar="KEY",
+                   help="ISMs whose footprints are drawn ('' for none)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="HOST",
+                   help="another Host name the page may be reached by, a reverse proxy's "
+                        "(repeatable; default: none)")
     p.add_argument("--allow-non-loopback", action="store_true",
                    help="allow --http on an address other than loopback (no authentication: "
                         "put a TLS proxy with a login in front, or use an SSH tunnel instead)")
     p.add_argument("--open", action="store_true", help="open the page in a browser")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    return p
 
 
 def parse_http(text: str) -> tuple[str, int]:
@@ -123,32 +136,37 @@ def _server(args: argparse.Namespace, host: str) -> Any:
                              query_timeout_s=args.timeout))
     app = create_app(hub, refresh_s=args.refresh,
                      allowed_hosts=allowed_hosts(host, args.allow_host))
-    config = uvicorn.Config(app, log_level="debug" if args.verbose else "warning",
+    verbose = getattr(args, "log_level", None) == "debug"
+    config = uvicorn.Config(app, log_level="debug" if verbose else "warning",
                             ws=_WS if _WS in WS_PROTOCOLS else "websockets",
                             ws_max_size=64 * 1024, lifespan="on", timeout_graceful_shutdown=3)
     return uvicorn.Server(config)
 
 
-def _prepare(argv: list[str] | None) -> tuple[argparse.Namespace, str, int]:
-    args = build_parser().parse_args(argv)
+def _prepare(args: argparse.Namespace) -> tuple[str, int]:
+    """The host and port to listen on, or a UsageError."""
     try:
         host, port = parse_http(args.http)
     except ValueError as exc:
-        raise SystemExit(f"sogm-service view: {exc}") from None
+        raise UsageError(str(exc)) from None
     if not is_loopback(host) and not args.allow_non_loopback:
-        raise SystemExit(
-            f"sogm-service view: refusing to listen on {host}: the page has no login and shows "
-            "the whole map. Reach it through an SSH tunnel (ssh -L 8080:127.0.0.1:8080 host) "
-            "or pass --allow-non-loopback behind a TLS proxy with authentication.")
+        raise UsageError(
+            f"refusing to listen on {host}: the page has no login and shows the whole map. "
+            "Reach it through an SSH tunnel (ssh -L 8080:127.0.0.1:8080 host) or pass "
+            "--allow-non-loopback behind a TLS proxy with authentication.")
     if min(args.refresh, args.poll, args.timeout) <= 0:
-        raise SystemExit("sogm-service view: --refresh, --poll and --timeout must be > 0")
-    return args, host, port
+        raise UsageError("--refresh, --poll and --timeout must be > 0")
+    return host, port
 
 
 def start_viewer(argv: list[str]) -> RunningViewer:
     """Start a viewer (same options as the command) in a background thread: for ``demo
     --view``.  Returns once it listens; ``stop()`` it before the process ends."""
-    args, host, port = _prepare(argv)
+    parser = standalone(f"{PROG} view", DESCRIPTION)
+    log_options(parser)
+    _arguments(parser)
+    args = parser.parse_args(argv)
+    host, port = _prepare(args)
     server = _server(args, host)
     sock = _bind(host, port)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]},
@@ -158,28 +176,20 @@ def start_viewer(argv: list[str]) -> RunningViewer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``sogm-service view``: serve until SIGINT/SIGTERM; returns the exit code."""
-    from sogm_service.apps.logs import setup_logging
+    """sogm-service view with these arguments: serve until SIGINT/SIGTERM."""
+    from sogm_service.apps import cli
 
-    try:
-        args, host, port = _prepare(argv)
-    except SystemExit as exc:
-        if isinstance(exc.code, str):
-            print(exc.code, file=sys.stderr)
-            return 2
-        raise
-    setup_logging("debug" if args.verbose else "info")
-    try:
-        server = _server(args, host)
-    except ImportError as exc:
-        print(f"sogm-service view: {_MISSING} ({exc})", file=sys.stderr)
-        return 2
+    return cli.main(["view", *(sys.argv[1:] if argv is None else argv)])
+
+
+def run(args: argparse.Namespace) -> int:
+    host, port = _prepare(args)
+    require_extra("viewer", "view")
+    server = _server(args, host)
     try:
         sock = _bind(host, port)
     except OSError as exc:
-        print(f"sogm-service view: cannot listen on {args.http}: {exc.strerror}",
-              file=sys.stderr)
-        return 2
+        return fail("view", f"cannot listen on {args.http}: {exc.strerror}")
     url = _url(host, sock)
     print(f"sogm-service view: {url} (map {args.map!r} at {args.connect})", flush=True)
     if not is_loopback(host):

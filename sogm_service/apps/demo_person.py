@@ -2,7 +2,7 @@
 moving person in a layer that forgets (:mod:`sogm_service.sim.moving`).
 
 The person layer is reported on its own (``layer_person.png`` and ``summary.json``'s
-``moving``); every other output is computed over the other layers, as before.
+``moving``); every other output is computed over the other layers.
 """
 
 from __future__ import annotations
