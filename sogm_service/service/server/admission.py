@@ -1,5 +1,8 @@
 """Admission: every ISM, pose and query priced from its header before any work.
 
+It is the one place a query's cells and bytes are priced: the query handlers
+(:mod:`~sogm_service.service.server.queries`) ask :meth:`Admission.check_query`, then sample.
+
 Each check raises the refusal with its code (:mod:`sogm_service.wire.errors`) and changes
 nothing; the caller counts and logs it as every other refusal.  The arithmetic lives in
 :mod:`sogm_service.core.map.footprint` (nothing proportional to the footprint is built).
