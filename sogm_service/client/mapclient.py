@@ -34,7 +34,7 @@ from sogm_service.client.session import (
     open_session,
 )
 from sogm_service.core.geometry import Pose2D
-from sogm_service.wire import codec
+from sogm_service.wire import codec, encodings
 from sogm_service.wire.errors import (
     ConnectError,
     IsmNotFusedError,
@@ -241,7 +241,8 @@ class MapClient:
             # BLOCK: the default DROP loses large messages under load
             # (docs/architecture.md#5-the-wire).
             pub = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK)
+                key, congestion_control=zenoh.CongestionControl.BLOCK,
+                encoding=zenoh.Encoding(encodings.MSGPACK))  # ISMs and poses are msgpack
             self._publishers[key] = pub
         return pub
 

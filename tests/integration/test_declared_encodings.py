@@ -1,6 +1,7 @@
 """Every payload the server sends declares its encoding, read here by a plain Zenoh session (no
 project client): msgpack wire models as ``application/msgpack`` (replies, error replies, tile
-events, rejection reports), whole tiles as ``application/x-sogm-tile``.  Without a declared
+events, rejection reports, and the client's ISMs and poses), whole tiles as
+``application/x-sogm-tile``.  Without a declared
 encoding a generic Zenoh tool sees ``zenoh/bytes`` and cannot tell what it holds."""
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ def _replies(session: zenoh.Session, selector: str) -> list[zenoh.Reply]:
 def test_replies_errors_events_and_tiles_declare_their_encoding(server: ServerProcess) -> None:
     events: list[zenoh.Sample] = []
     rejections: list[zenoh.Sample] = []
+    sent: list[zenoh.Sample] = []  # what the client puts: ISMs and poses
     lock = threading.Lock()
 
     def keep(into: list[zenoh.Sample]) -> object:
@@ -47,7 +49,9 @@ def test_replies_errors_events_and_tiles_declare_their_encoding(server: ServerPr
     raw = _raw_session(server.endpoint)
     try:
         subs = [raw.declare_subscriber("sogm/default/events/tile", keep(events)),
-                raw.declare_subscriber("sogm/default/rejections/**", keep(rejections))]
+                raw.declare_subscriber("sogm/default/rejections/**", keep(rejections)),
+                raw.declare_subscriber("ism/robot1/**", keep(sent)),
+                raw.declare_subscriber("pose/**", keep(sent))]
         with server.client() as client:
             client.publish_ism("ism/robot1/laser/obstacle", np.full((40, 40), 230, np.uint8),
                                resolution=0.05, robot="robot1", wait=True)
@@ -71,10 +75,12 @@ def test_replies_errors_events_and_tiles_declare_their_encoding(server: ServerPr
             assert tiles and all(r.ok is not None for r in tiles)
             assert {str(r.ok.encoding) for r in tiles if r.ok is not None} == {TILE}
 
-            assert wait_until(lambda: bool(events) and bool(rejections), timeout=10.0)
+            assert wait_until(lambda: bool(events) and bool(rejections) and len(sent) >= 3,
+                              timeout=10.0)
         with lock:
             assert {str(s.encoding) for s in events} == {MSGPACK}
             assert {str(s.encoding) for s in rejections} == {MSGPACK}
+            assert {str(s.encoding) for s in sent} == {MSGPACK}
             assert msgpack.unpackb(rejections[0].payload.to_bytes())["code"] \
                 == "malformed_msgpack"
         for sub in subs:

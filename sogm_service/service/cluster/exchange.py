@@ -22,9 +22,11 @@ from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.cluster.handover import content_digest
 from sogm_service.service.cluster.view import ClusterView
 from sogm_service.store.format import TileHeader, tile_from_bytes
+from sogm_service.wire import encodings
 from sogm_service.wire.errors import QueryError, TileFormatError
 
 log = logging.getLogger(__name__)
+MSGPACK = zenoh.Encoding(encodings.MSGPACK)  # a member's answers are msgpack maps
 
 MAX_CLUSTER_BYTES = 64 << 20  # one cluster reply or request at most (a tile is ~N x 128 KiB)
 
@@ -101,7 +103,8 @@ class TileExchange(ClusterView):
             if params.get("settle"):
                 self._settle(2.0)
             q.reply(q.key_expr, msgpack.packb({"member": self.me,
-                                               "tiles": self.served_tiles()}))
+                                               "tiles": self.served_tiles()}),
+                    encoding=MSGPACK)
         except Exception:
             log.exception("cluster: answering a tile list failed")
 
@@ -118,7 +121,7 @@ class TileExchange(ClusterView):
                     body = msgpack.unpackb(raw)
                     if isinstance(body, dict):
                         digest = body.get("digest")
-            q.reply(q.key_expr, self.tile_answer(index, digest))
+            q.reply(q.key_expr, self.tile_answer(index, digest), encoding=MSGPACK)
             self.stats.count("cluster_tiles_served")
         except (ValueError, IndexError, TypeError, msgpack.UnpackException):
             self.stats.count("cluster_bad_requests")
