@@ -22,12 +22,13 @@ from sogm_service.adapters.carmen import (
 )
 from sogm_service.adapters.laser import scan_endpoints_world
 from sogm_service.core.geometry import window_geometry
+from sogm_service.data import INTEL_LOG
 from sogm_service.sim.fleet import replay_scans
 from sogm_service.sim.offline import map_scans
 from tests.conftest import ServerProcess, wait_processed
 
-INTEL = Path("/work/shared/data/carmen/intel-corrected.log.gz")
-needs_intel = pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")
+INTEL = INTEL_LOG  # ships with the package
+needs_intel = pytest.mark.skipif(not INTEL.exists(), reason="the package data is missing")
 
 GOOD = "FLASER 4 1.0 2.0 81.83 0.5 1.5 -2.0 0.25 9.0 9.0 9.0 123.5 host 124.0\n"
 

@@ -12,7 +12,6 @@ import json
 import math
 from collections import Counter
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -28,6 +27,7 @@ from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.core.matching import match as mt
 from sogm_service.core.matching import params as mp
 from sogm_service.core.resample import resample_logodds
+from sogm_service.data import INTEL_LOG
 
 RES = 0.05
 PLAN = 640
@@ -425,7 +425,7 @@ def test_benchmark_match_returns_timings() -> None:
 # The real Intel Research Lab log
 
 
-INTEL = Path("/work/shared/data/carmen/intel-corrected.log.gz")
+INTEL = INTEL_LOG  # ships with the package
 INTEL_RES = 0.05
 INTEL_RANGE = 8.0  # usable laser range (m): the ISM stays a few hundred cells wide
 

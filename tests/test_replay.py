@@ -13,18 +13,15 @@ from sogm_service.adapters.laser import scan_endpoints_world
 from sogm_service.apps.cli import main as cli_main
 from sogm_service.apps.replay import replay_carmen
 from sogm_service.core.geometry import GridGeometry
+from sogm_service.data import INTEL_LOG
 from tests.test_carmen import robotlaser_line, room_ranges
 
 pytestmark = pytest.mark.integration
 
-# The repository is checked out with shared/ beside it (in CI), or the machine's shared data.
-LOG = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/carmen",
-                        Path("/work/shared/data/carmen"))
-            if (p / "intel-corrected.log.gz").exists()),
-           Path("shared/data/carmen")) / "intel-corrected.log.gz"
+LOG = INTEL_LOG  # the Intel Research Lab log ships with the package
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@pytest.mark.skipif(not LOG.exists(), reason="the package data is missing")
 def test_replayed_map_has_its_occupied_cells_on_beam_endpoints() -> None:
     scans = list(read_carmen(LOG, limit=150))
     result = replay_carmen(LOG, limit=150)
@@ -50,7 +47,7 @@ def test_replayed_map_has_its_occupied_cells_on_beam_endpoints() -> None:
     assert (p[path[:, 1], path[:, 0]] < 0.3).mean() > 0.99
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@pytest.mark.skipif(not LOG.exists(), reason="the package data is missing")
 def test_replay_command_writes_the_png(tmp_path: Path) -> None:
     png = tmp_path / "intel.png"
     assert cli_main(["replay", "carmen", str(LOG), "--limit", "40", "--png", str(png)]) == 0
@@ -127,7 +124,7 @@ def _replay_window(scans: list) -> GridGeometry:  # type: ignore[type-arg]
     return window_geometry(w["x"], w["y"], w["yaw"], w["width"], w["height"], w["resolution"])
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@pytest.mark.skipif(not LOG.exists(), reason="the package data is missing")
 def test_replay_into_a_running_server_through_a_zenoh_config_file(tmp_path: Path) -> None:
     """``--zenoh-config`` alone reaches the server: the file (not --connect) names where."""
     import json

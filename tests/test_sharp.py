@@ -9,7 +9,6 @@ where the reference says unknown <= 1 % of the observed cells.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -22,16 +21,14 @@ from sogm_service.core import logodds
 from sogm_service.core.geometry import Pose2D, TileLattice
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.resample import lattice_offset, tile_patches
+from sogm_service.data import INTEL_LOG
 from sogm_service.sim.sensors import TiltedLaser
 from tests.raycast_reference import Comparison, compare, reference_map
 
 RES = 0.05
 USABLE = 20.0
 DEVICE_MAX = 80.0
-LOG = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/carmen",
-                        Path("/work/shared/data/carmen"))
-            if (p / "intel-corrected.log.gz").exists()),
-           Path("shared/data/carmen")) / "intel-corrected.log.gz"
+LOG = INTEL_LOG  # the Intel Research Lab log ships with the package
 
 
 # -- synthetic scans ------------------------------------------------------------------------
@@ -175,7 +172,7 @@ def test_synthetic_scans_meet_the_targets_on_the_lattice_and_not_through_biodds(
     assert sharp.free_where_unknown < smeared.free_where_unknown
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@pytest.mark.skipif(not LOG.exists(), reason="the package data is missing")
 def test_intel_log_meets_the_targets_on_the_lattice() -> None:
     scans = list(read_carmen(LOG, limit=300))
     sharp = measure(scans, "lattice")
@@ -183,7 +180,7 @@ def test_intel_log_meets_the_targets_on_the_lattice() -> None:
     assert meets_targets(sharp), sharp
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@pytest.mark.skipif(not LOG.exists(), reason="the package data is missing")
 def test_replay_carmen_is_sharp_by_default() -> None:
     from sogm_service.apps.replay import replay_carmen
 

@@ -51,8 +51,8 @@ from sogm_service.core.matching.match import (
     prior_matrix,
 )
 from sogm_service.core.matching.params import MatchParams, MatchReason
+from sogm_service.data import INTEL_LOG
 
-INTEL_LOG = Path("/work/shared/data/carmen/intel-corrected.log.gz")
 LAYER = "obstacle"
 MIN_KNOWN_CELLS = 200  # as the server's matcher: below this the map is too empty to match
 GROSS_M = 0.3
