@@ -7,7 +7,11 @@ encoding a generic Zenoh tool sees ``zenoh/bytes`` and cannot tell what it holds
 from __future__ import annotations
 
 import json
+import re
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -87,3 +91,18 @@ def test_replies_errors_events_and_tiles_declare_their_encoding(server: ServerPr
             sub.undeclare()
     finally:
         raw.close()
+
+
+def test_the_docs_example_reads_a_reply_with_zenoh_and_msgpack_alone(
+        server: ServerProcess) -> None:
+    """The wire page's example, run as it is written (only the endpoint is this server's)."""
+    page = (Path(__file__).resolve().parents[2] / "docs" / "wire.md").read_text()
+    section = page.split("## Reading a reply with a generic Zenoh tool", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S)
+    assert code is not None
+    script = code.group(1).replace("tcp/127.0.0.1:7447", server.endpoint)
+    assert "sogm_service" not in script
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60, check=True).stdout
+    assert out.splitlines()[0] == MSGPACK
+    assert "'map': 'default'" in out
