@@ -43,6 +43,13 @@ def class_colors(n: int) -> npt.NDArray[np.uint8]:
     return np.array(colors, dtype=np.uint8).reshape(n, 3)
 
 
+def palette_hex(n: int) -> list[str]:
+    """`class_colors` as #rrggbb: a page's legend in the colours of its tiles."""
+    return ["#{2:02x}{1:02x}{0:02x}".format(*map(int, c)) for c in class_colors(n)]
+
+
+UNKNOWN_HEX = "#{2:02x}{1:02x}{0:02x}".format(*UNKNOWN_BGR)
+
 def dominant_class_image(stack: npt.NDArray, threshold: float = 0.5,
                          scale: int = 1) -> npt.NDArray[np.uint8]:
     """``(N, H, W)`` probabilities -> each cell coloured by its most likely layer.

@@ -18,7 +18,6 @@ once per ``max_age`` however many pages show it, and re-encoded only when its ce
 
 from __future__ import annotations
 
-import colorsys
 import hashlib
 import logging
 import threading
@@ -31,7 +30,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sogm_service.apps.render import UNKNOWN_BGR, dominant_class_image, probability_image
+from sogm_service.apps.render import (
+    UNKNOWN_BGR,
+    UNKNOWN_HEX,
+    dominant_class_image,
+    palette_hex,
+    probability_image,
+)
 from sogm_service.apps.viewer.tiles import Lattice, TileSpec
 from sogm_service.client.isms import IsmFootprint
 from sogm_service.client.mapclient import MapClient
@@ -95,18 +100,6 @@ class Updates:
     def __bool__(self) -> bool:
         return bool(self.status or self.info or self.poses or self.events or self.footprints
                     or self.stats)
-
-
-def palette_hex(n: int) -> list[str]:
-    """The class colours of :func:`sogm_service.apps.render.class_colors` as ``#rrggbb``."""
-    out = []
-    for k in range(n):  # same formula, RGB order: the page's legend matches the tiles
-        r, g, b = colorsys.hsv_to_rgb((k * 0.618033988749895) % 1.0, 0.75, 0.95)
-        out.append(f"#{int(r * 255):02x}{int(g * 255):02x}{int(b * 255):02x}")
-    return out
-
-
-UNKNOWN_HEX = "#{:02x}{:02x}{:02x}".format(*UNKNOWN_BGR[::-1])
 
 
 class MapHub:
