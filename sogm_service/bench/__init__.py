@@ -161,7 +161,7 @@ def run(args: argparse.Namespace, dev_pki: DevPki | None = None) -> int:
 
 
 def _usage(message: str) -> int:
-    print(f"sogm-service bench: {message}", file=sys.stderr)
+    print(f"sogm-service: bench: {message}", file=sys.stderr)
     return 2
 
 

@@ -318,11 +318,11 @@ def main(argv: list[str] | None = None) -> int:
 def run(args: argparse.Namespace) -> int:
     """Evaluate as the parsed options say; the exit status."""
     if not args.log.exists():
-        print(f"sogm-service eval matching: no such file {args.log}", file=sys.stderr)
+        print(f"sogm-service: eval matching: no such file {args.log}", file=sys.stderr)
         return 2
     scans = list(read_carmen(args.log, limit=args.limit))
     if len(scans) <= args.start:
-        print(f"sogm-service eval matching: {len(scans)} scans, none after --start "
+        print(f"sogm-service: eval matching: {len(scans)} scans, none after --start "
               f"{args.start}", file=sys.stderr)
         return 2
     variants = variants_of(args.ratio, args.margin_cells)
