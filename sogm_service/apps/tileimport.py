@@ -9,9 +9,9 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from sogm_service.apps.tiletool import MapKey, ToolError
+from sogm_service.apps.options import ToolError
 from sogm_service.store.directory import DirectoryStore, lock_directory
-from sogm_service.store.format import SUFFIX, TileHeader, tile_from_bytes
+from sogm_service.store.format import SUFFIX, MapKey, TileHeader, tile_from_bytes
 from sogm_service.wire.errors import TileFormatError
 
 

@@ -37,13 +37,14 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.apps.options import PROG, command, fail, standalone, subcommands
+from sogm_service.apps.options import PROG, ToolError, command, fail, standalone, subcommands
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.format import (
     SUFFIX,
+    MapKey,
     StoredTile,
     TileHeader,
     read_tile_file,
@@ -51,13 +52,8 @@ from sogm_service.store.format import (
 )
 from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
-MapKey = tuple[str, float, int]  # (map name, resolution, tile size)
 _CELL_EPS = 1e-9
 MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an export in memory
-
-
-class ToolError(Exception):
-    """A user-facing failure: printed as one line, exit status 2."""
 
 
 # -- parser ---------------------------------------------------------------------------------

@@ -69,6 +69,7 @@ A byte shuffle (high/low bytes apart) was tried and is not a clear win (2.28x no
 saturated at level 1).  Level 1 keeps a checkpoint of many tiles cheapest in CPU."""
 
 SUFFIX: Final = ".tile"
+MapKey = tuple[str, float, int]  # one map's tiles in a store: (name, resolution, tile size)
 
 _PREFIX = struct.Struct("<8sHHI")
 _CRC = struct.Struct("<I")
