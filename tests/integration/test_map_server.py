@@ -25,6 +25,8 @@ from sogm_service.wire.messages import (
     SubmapRequest,
 )
 from tests.conftest import ServerProcess, start_server, wait_processed, wait_until
+from tests.unit.core.test_logodds import HI, LO
+from tests.unit.wire.test_codec import ism_payload
 
 pytestmark = pytest.mark.integration
 
@@ -326,3 +328,22 @@ def test_serve_without_endpoints_listens_where_clients_connect_by_default(tmp_pa
     finally:
         proc.terminate()
         assert proc.wait(15) == 0
+
+
+def test_prob_u8_v2_over_the_wire(server: ServerProcess) -> None:
+    """Codes 0 / 127 / 254 / 255 in four bands, published as raw msgpack to a real server."""
+    data = np.zeros((40, 40), np.uint8)
+    data[:, 10:20], data[:, 20:30], data[:, 30:] = 127, 254, 255
+    nan_ism = np.full((40, 40), np.nan, np.float32)
+    with server.client() as client:
+        client.publish_raw("ism/r/laser/obstacle", ism_payload(data, "prob_u8_v2"))
+        client.publish_raw("ism/r/laser/obstacle", ism_payload(nan_ism, "prob_f32"))
+        counters = wait_processed(client, 2)
+        assert counters.get("isms_fused") == 2, counters
+        window = dict(x=1.0, y=1.0, width=2.0, height=2.0, resolution=0.05, interp="nearest")
+        l = client.submap(**window, encoding="logodds_i16").data[0]
+        v2 = client.submap(**window, encoding="prob_u8_v2").data[0]
+    assert (l[:, :10] == LO).all() and (l[:, 10:20] == 0).all()
+    assert (l[:, 20:30] == HI).all() and (l[:, 30:] == 0).all()
+    assert (v2[:, :10] == 0).all() and (v2[:, 10:20] == 255).all()
+    assert (v2[:, 20:30] == 254).all() and (v2[:, 30:] == 255).all()

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from sogm_service.adapters.laser import (
     encode_occupancy_i8,
     encode_prob_u8,
+    encode_prob_u8_v2,
     laser_ism,
     scan_endpoints_world,
 )
@@ -102,3 +103,8 @@ def test_encoders() -> None:
     p = np.array([0.0, 0.3, 0.5, 0.8, 1.0], dtype=np.float32)
     assert encode_occupancy_i8(p).tolist() == [0, 30, -1, 80, 100]
     assert encode_prob_u8(p).tolist() == [0, 77, 128, 204, 255]
+
+
+def test_laser_encoder_writes_unknown_as_255() -> None:
+    assert encode_prob_u8_v2(np.array([0.0, 0.5, 1.0, np.nan, 0.25])).tolist() == \
+        [0, 255, 254, 255, round(0.25 * 254)]

@@ -374,3 +374,59 @@ def test_bayes_update_on_column_strided_views() -> None:
                                     *limits)
     logodds.bayes_update(state[2:9, 3:20:3], inc[1:8, 0:17:3], limits)
     np.testing.assert_array_equal(state, expected)
+
+
+# -- value encodings ------------------------------------------------------------------------
+# An exact "no information" in 8-bit and float ISMs: ``prob_u8`` keeps its meaning (p = v / 255,
+# no exact unknown); ``prob_u8_v2`` is 0..254 -> p = v / 254 (127 exactly 0.5) and 255 = unknown;
+# ``prob_f32`` takes NaN as unknown.  Expected increments are computed here from the definitions
+# (``math.log``), not from the project's LUTs.
+EPS0 = logodds.DEFAULT_EPS0
+LO, HI = logodds.clamp_limits(EPS0)
+
+
+def fixed(p: float) -> int:
+    """round(1000 * logit(clip(p, eps0, 1 - eps0))), from the definition."""
+    q = min(max(p, EPS0), 1.0 - EPS0)
+    return round(1000.0 * math.log(q / (1.0 - q)))
+
+
+def test_prob_u8_v2_table_from_its_definition() -> None:
+    lut = logodds.increment_lut("prob_u8_v2")
+    want = [fixed(v / 254.0) for v in range(255)] + [0]
+    assert lut.tolist() == want
+    assert lut[127] == 0 and lut[255] == 0  # exactly no information, twice
+    assert (lut[0], lut[254]) == (LO, HI)  # the clamp ends, as prob_u8's 0 and 255
+    assert lut[128] == fixed(128 / 254) == 16  # one step above unknown: log(128 / 126)
+    # symmetric about 127: v and 254 - v are opposite evidence
+    assert (lut[:127] == -lut[254:127:-1]).all()
+
+
+def test_prob_u8_keeps_its_meaning_for_robots_already_deployed() -> None:
+    lut = logodds.increment_lut("prob_u8")
+    assert lut.tolist() == [fixed(v / 255.0) for v in range(256)]
+    assert (lut[0], lut[127], lut[128], lut[255]) == (LO, -8, 8, HI)
+
+
+def test_prob_f32_nan_cells_are_untouched_and_the_rest_fused() -> None:
+    p = np.array([[np.nan, 0.9], [0.1, np.nan]], np.float32)
+    inc = logodds.increments(p, "prob_f32")
+    assert inc.tolist() == [[0, fixed(float(np.float32(0.9)))], [fixed(float(np.float32(0.1))), 0]]
+
+
+def test_prob_u8_v2_as_a_reply_encoding() -> None:
+    l = np.array([0, LO, HI, 1, -1, 2000], np.int16)
+    enc = logodds.encode_fixed(l, "prob_u8_v2")
+    assert enc.dtype == np.uint8
+    p2000 = 1.0 / (1.0 + math.exp(-2.0))
+    assert enc.tolist() == [255, 0, 254, 127, 127, round(p2000 * 254)]
+    dec = logodds.decode_to_prob(enc, "prob_u8_v2")
+    assert dec[0] == 0.5 and dec[3] == 0.5 and dec[2] == 1.0
+    # Every code round-trips through the map (127, p = 0.5, is written as 255: unknown).
+    codes = np.arange(256, dtype=np.uint8)
+    back = logodds.encode_fixed(logodds.prob_to_fixed(logodds.decode_to_prob(codes,
+                                                                             "prob_u8_v2")),
+                                "prob_u8_v2")
+    want = codes.copy()
+    want[127] = 255
+    np.testing.assert_array_equal(back, want)

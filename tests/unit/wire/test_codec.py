@@ -407,3 +407,23 @@ def test_reject_codes_are_documented() -> None:
                                          ("stamp", b"12"), ("data", "\x00" * 6)])
 def test_lax_coercions_are_refused(field: str, value: Any) -> None:
     reject(IsmMessage, pack(ism_fields(**{field: value})), "wrong_type")
+
+
+def ism_payload(data: np.ndarray, encoding: str, res: float = 0.05) -> bytes:
+    """An ISM packed from the schema's fields (schemas/ism.json), not the project's model."""
+    return msgpack.packb({"resolution": res, "origin": {"x": 0.0, "y": 0.0, "yaw": 0.0},
+                          "width": int(data.shape[1]), "height": int(data.shape[0]),
+                          "encoding": encoding, "data": np.ascontiguousarray(data).tobytes()})
+
+
+def test_wire_accepts_every_prob_u8_v2_code_and_nan_but_not_infinity() -> None:
+    codes = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    msg = codec.decode(IsmMessage, ism_payload(codes, "prob_u8_v2"))
+    assert msg.array().tolist() == codes.tolist()
+    cells = np.array([[0.2, np.nan], [1.0, 0.0]], np.float32)
+    assert np.isnan(codec.decode(IsmMessage, ism_payload(cells, "prob_f32")).array()).sum() == 1
+    for bad, code in (([np.inf, 0.5], "non_finite"), ([np.nan, 1.5], "out_of_range"),
+                      ([np.nan, -0.1], "out_of_range")):
+        with pytest.raises(DecodeError) as info:
+            codec.decode(IsmMessage, ism_payload(np.array([bad], np.float32), "prob_f32"))
+        assert info.value.code == code

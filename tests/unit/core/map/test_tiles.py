@@ -17,6 +17,7 @@ from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice, window_geometry
 from sogm_service.core.map.tiles import TiledMap
 from tests.oracles import sample_bilinear
+from tests.unit.core.test_logodds import HI
 
 RES = 0.1
 T = 8  # small tiles so that small ISMs cross boundaries
@@ -335,3 +336,57 @@ def test_the_running_resident_byte_count_follows_every_change() -> None:
     assert m.resident_bytes() == truth()
     m.discard(index)
     assert m.resident_bytes() == truth()
+
+
+# -- ISMs that carry no information leave the map as it is -----------------------------------
+def _filled_map() -> TiledMap:
+    """A map with content (a real ISM in two layers) to watch for any change."""
+    tiled = TiledMap("m", "map", TileLattice(0.05, 64))
+    rng = np.random.default_rng(3)
+    p = rng.random((90, 110)).astype(np.float32)
+    geom = GridGeometry(0.05, 110, 90, Pose2D(-1.0, -0.7, 0.3))
+    for layer in ("a", "b"):
+        tiled.fuse(layer, logodds.increments(p, "prob_f32"), geom, "biodds")
+    return tiled
+
+
+def _snapshot(tiled: TiledMap) -> dict[tuple[int, int], bytes]:
+    return {k: tiled.tile_layers(t)[1].tobytes() for k, t in tiled.tiles.items()}
+
+
+UNKNOWN_ISMS = {
+    "prob_u8_v2 255": (np.full((40, 50), 255, np.uint8), "prob_u8_v2"),
+    "prob_u8_v2 127": (np.full((40, 50), 127, np.uint8), "prob_u8_v2"),
+    "prob_u8_v2 mixed": (np.where(np.indices((40, 50)).sum(axis=0) % 2 == 0, 127, 255)
+                         .astype(np.uint8), "prob_u8_v2"),
+    "prob_f32 NaN": (np.full((40, 50), np.nan, np.float32), "prob_f32"),
+    "occupancy_i8 -1": (np.full((40, 50), -1, np.int8), "occupancy_i8"),
+}
+
+
+@pytest.mark.parametrize("name", list(UNKNOWN_ISMS))
+def test_all_unknown_isms_leave_the_map_bit_identical_after_10000_fusions(name: str) -> None:
+    data, encoding = UNKNOWN_ISMS[name]
+    tiled = _filled_map()
+    before = _snapshot(tiled)
+    inc = logodds.increments(data, encoding)
+    assert not inc.any()
+    aligned = GridGeometry(0.05, 50, 40, Pose2D(-0.5, -0.5, 0.0))
+    rotated = GridGeometry(0.07, 50, 40, Pose2D(0.3, -0.2, 0.8))  # warped with biodds
+    far = GridGeometry(0.05, 50, 40, Pose2D(40.0, 40.0, 0.0))  # no tile there yet
+    for i in range(10_000):
+        tiled.fuse("a", inc, (aligned, rotated)[i % 2], "biodds")
+    for interp in ("bilinear", "nearest"):
+        tiled.fuse("b", inc, rotated, interp)
+    tiled.fuse("a", inc, far, "biodds")
+    assert _snapshot(tiled) == before  # same tiles, same bytes
+
+
+def test_prob_u8_128_as_unknown_drives_the_map_to_the_clamp() -> None:
+    """Why prob_u8_v2 exists: a prob_u8 ISM that uses 128 for unknown is +8 units a time."""
+    tiled = TiledMap("m", "map", TileLattice(0.05, 64))
+    geom = GridGeometry(0.05, 8, 8, Pose2D(0.0, 0.0, 0.0))
+    inc = logodds.increments(np.full((8, 8), 128, np.uint8), "prob_u8")
+    for _ in range(10_000):
+        tiled.fuse("a", inc, geom, "biodds")
+    assert (tiled.tiles[(0, 0)].planes[0][:8, :8] == HI).all()
