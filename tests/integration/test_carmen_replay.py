@@ -13,7 +13,7 @@ from sogm_service.adapters.laser import scan_endpoints_world
 from sogm_service.apps.cli import main as cli_main
 from sogm_service.apps.replay import replay_carmen
 from sogm_service.core.geometry import GridGeometry
-from tests.test_carmen import robotlaser_line, room_ranges
+from tests.unit.adapters.test_carmen import robotlaser_line, room_ranges
 
 pytestmark = pytest.mark.integration
 

@@ -1,6 +1,6 @@
-"""One map over several servers (issue 20): ownership, ingestion share, gathering, failover.
+"""One map over several servers: ingestion share, gathering, failover, handover of tiles.
 
-The integration tests run real ``serve`` processes of one map on 127.0.0.1, a reference server
+The tests run real ``serve`` processes of one map on 127.0.0.1, a reference server
 (a single server of another map name, fed the same ISMs) and a fleet of robot sessions.  The
 fleet's ISMs are aligned with the map and mild (p in [0.45, 0.55]), so no cell reaches the clamp:
 Eq. 1 is then exact integer addition, and every member's tiles must equal the reference's bit
@@ -10,6 +10,8 @@ for bit whatever order the members received the robots' ISMs in.
 from __future__ import annotations
 
 import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,15 +22,22 @@ import zenoh
 
 from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import free_tcp_endpoint, loopback_settings, open_session
-from sogm_service.core.geometry import Pose2D
-from sogm_service.core.map.rendezvous import Ownership, owners_of, ranking
+from sogm_service.core.geometry import Pose2D, TileLattice
+from sogm_service.core.map.rendezvous import Ownership
+from sogm_service.core.map.tiles import TiledMap
+from sogm_service.core.map.tiletypes import TileIndex
+from sogm_service.service.cluster.cluster import Cluster
 from sogm_service.service.cluster.handover import replay_plan
-from sogm_service.service.server.fusers import FuseJob
+from sogm_service.service.config import ServiceConfig
+from sogm_service.service.server.checkpoints import Checkpointer
+from sogm_service.service.server.fusers import FuseWorkers
+from sogm_service.service.server.stats import Stats
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError
 from sogm_service.wire.keys import MapKeys
 from sogm_service.wire.messages import ErrorReply, GridReply, InfoReply
 from tests.conftest import ServerProcess, start_server, wait_until
+from tests.unit.service.cluster.test_handover import KEYS, T, numbered_jobs
 
 RES = 0.1
 TILE = 16  # cells: 1.6 m tiles, so a handful of small ISMs spans many tiles
@@ -37,66 +46,12 @@ LAYERS = [f"{r}/laser/obstacle" for r in ROBOTS]
 WINDOW = dict(x=0.0, y=0.0, width=9.6, height=9.6)  # the fleet's whole area
 PUBLISHED: list[int] = []
 
-# The flake these tests had (issue 20) was the robots publishing before gossip had linked their
+# The flake these tests had was the robots publishing before gossip had linked their
 # sessions to every server: peers do not forward for each other, so the first ISMs never
 # reached a late server (seen on a machine with 4 busy loops on its 2 cores: 2 failures in 10
 # runs).  They now wait for those links (Fleet.linked).  A failure is still rerun at most
 # twice, so a rare slow start cannot fail CI while a test that fails every time still does.
 pytestmark = pytest.mark.flaky(reruns=2)
-
-
-# -- pure: rendezvous and the replay plan ---------------------------------------------------
-def test_owners_are_the_same_for_any_member_order_and_distinct() -> None:
-    members = [f"m{k}" for k in range(5)]
-    for index in [(i, j) for i in range(-5, 5) for j in range(-5, 5)]:
-        a = owners_of(members, index, 2)
-        b = owners_of(list(reversed(members)), index, 2)
-        assert a == b and len(set(a)) == 2
-    assert owners_of(["only"], (0, 0), 2) == ("only",)
-
-
-def test_a_join_moves_only_tiles_to_the_new_member_and_about_its_share() -> None:
-    tiles = [(i, j) for i in range(-20, 20) for j in range(-20, 20)]
-    before = Ownership(frozenset({"a", "b", "c"}), 2)
-    after = before.with_member("d")
-    moved = 0
-    for t in tiles:
-        gained = set(after.owners(t)) - set(before.owners(t))
-        assert gained <= {"d"}  # nobody but the newcomer gains a tile
-        moved += len(gained)
-    share = moved / (2 * len(tiles))  # the newcomer's fraction of all copies
-    assert 0.2 < share < 0.3  # ~1/4 of the copies
-
-
-def test_a_leave_reassigns_only_the_leavers_copies() -> None:
-    tiles = [(i, j) for i in range(-10, 10) for j in range(-10, 10)]
-    before = Ownership(frozenset({"a", "b", "c", "d"}), 2)
-    after = before.without_member("b")
-    for t in tiles:
-        kept = set(before.owners(t)) - {"b"}
-        assert kept <= set(after.owners(t)) and len(after.owners(t)) == 2
-        if "b" not in before.owners(t):
-            assert after.owners(t) == before.owners(t)
-    assert ranking(["x", "y"], (1, 2)) == ranking(["y", "x"], (1, 2))
-
-
-def _job(key: str, stamp: float, digest: int) -> FuseJob:
-    return FuseJob("l", np.zeros((1, 1), np.int16), None, "nearest", stamp,  # type: ignore
-                   lambda t, e: None, key=key, digest=digest)
-
-
-def test_replay_plan_neither_loses_nor_repeats() -> None:
-    journal = [_job("a", 1, 11), _job("b", 1, 21), _job("a", 2, 12), _job("b", 2, 22),
-               _job("a", 3, 13)]
-    # the copy holds a up to stamp 2 and b up to 1: replay a3 and b2, in journal order
-    keep, skip = replay_plan(journal, {"a": (2.0, 12), "b": (1.0, 21)})
-    assert [(j.key, j.stamp) for j in keep] == [("b", 2), ("a", 3)] and not skip
-    # the copy has nothing of a, and b from before the journal started: replay all
-    keep, skip = replay_plan(journal, {"b": (0.5, 20)})
-    assert len(keep) == 5 and not skip
-    # the copy is ahead of us on a (a4 reached its owner first): replay no a, skip until a4
-    keep, skip = replay_plan(journal, {"a": (4.0, 14)})
-    assert [j.key for j in keep] == ["b", "b"] and skip == {"a": (4.0, 14)}
 
 
 # -- processes ------------------------------------------------------------------------------
@@ -281,7 +236,6 @@ def test_three_members_failover_join_and_late_member(tmp_path: Path,
         fleet.close()
 
 
-
 def _pulled_and_current(client: MapClient) -> tuple[int, int]:
     s = client.stats()
     return (s.counters.get("cluster_tiles_pulled", 0), s.counters.get("cluster_tiles_current", 0))
@@ -395,7 +349,8 @@ def _each_tile_switch_is_announced_once(observer: MapClient) -> None:
 
 def _each_member_answers_its_own_key(observer: MapClient) -> None:
     """``member/<id>/<name>`` reaches the member named (a plain get reaches whichever members
-    Zenoh routes it to: in a peer mesh, all of them; see tests/test_router_integration.py)."""
+    Zenoh routes it to: in a peer mesh, all of them; behind a router, one: see
+    tests/integration/test_robots_reach_the_server_through_a_router.py)."""
     for server_id in _member_stats(observer):
         key = MapKeys(observer.prefix, observer.map_name).member(server_id, "info")
         assert codec.decode(InfoReply, observer.get_raw(key)).server_id == server_id
@@ -496,3 +451,167 @@ def _every_member_refuses_a_bad_header(observer: MapClient) -> None:
     observer.publish_raw("ism/r1/laser/obstacle", codec.encode(bad))
     assert wait_until(lambda: sum(s["rejected"].get("bad_layer", 0)
                                   for s in _member_stats(observer).values()) == 2, 30)
+
+
+# -- applied marks through the handover: a joiner replays only ISMs after a copy's marks ----
+def _planes(tiled: TiledMap) -> dict[tuple[TileIndex, str], bytes]:
+    out = {}
+    for index in tiled.known_tiles():
+        tiled.get_tile(index)
+        snap = tiled.snapshot(index)
+        assert snap is not None
+        for k, name in enumerate(snap.layers):
+            if snap.data[k].any():
+                out[(index, name)] = snap.data[k].tobytes()
+    return out
+
+
+def _config(tmp_path: Path | None, **storage: Any) -> ServiceConfig:
+    sections: dict[str, Any] = {"map": {"name": "lab", "resolution": RES, "tile_size": T},
+                                "cluster": {"enabled": True, "handover_timeout_s": 2.0}}
+    if tmp_path is not None:
+        sections["storage"] = {"directory": str(tmp_path), **storage}
+    return ServiceConfig.model_validate(sections)
+
+
+def _cluster(config: ServiceConfig, stats: Stats) -> tuple[Cluster, TiledMap, Checkpointer]:
+    keeper = Checkpointer(config, stats, keep=set)
+    tiled = TiledMap("lab", "map", TileLattice(RES, T), loader=keeper.load)
+    keeper.attach(tiled)
+    return Cluster(config, tiled, keeper, stats, FuseWorkers(tiled, 1), lambda t: True), \
+        tiled, keeper
+
+
+@pytest.fixture
+def sessions() -> Iterator[list[Any]]:
+    opened: list[Any] = []
+    yield opened
+    for s in opened:
+        s.close()
+
+
+def test_a_joiner_replays_only_isms_after_the_marks_of_an_evicted_restarted_owner(
+        tmp_path: Path, sessions: list[Any]) -> None:
+    """The owner fused ISMs 1-4, evicted every tile to its store (memory budget) and was
+    restarted from that store; the joiner journaled ISMs 3-6 (it subscribed after ISM 2) and
+    pulls both tiles from the owner over Zenoh (the real ``_on_tile``/``tile_answer`` and
+    ``_pull``).  The marks come back from the files, so ISMs 3 and 4 are not fused twice: the
+    joiner's tiles equal a map fused with 1-6 once each, bit for bit."""
+    jobs = numbered_jobs(6)
+    reference = TiledMap("lab", "map", TileLattice(RES, T))
+    for job in jobs:
+        job.fuse(reference, None)
+
+    stats = Stats()
+    owner, tiled, keeper = _cluster(_config(tmp_path / "a", memory_budget_mb=1e-6), stats)
+    for job in jobs[:4]:
+        job.fuse(tiled, None)
+    keeper.enforce_budget()  # the budget holds no tile: every one goes to the store
+    assert not tiled.tiles and stats.snapshot()[0]["tiles_evicted"] == 2
+    keeper.close(10.0)
+    # Restart: a new member over the same store (no tile resident, marks only on disk).
+    owner, tiled, keeper = _cluster(_config(tmp_path / "a", memory_budget_mb=1e-6), Stats())
+    assert not tiled.tiles and tiled.stored == {(0, 0), (1, 0)}
+
+    endpoint = free_tcp_endpoint()
+    sa = open_session(loopback_settings(listen=endpoint))
+    sessions.append(sa)
+    sb = open_session(loopback_settings(connect=endpoint))
+    sessions.append(sb)
+    view = Ownership(frozenset({"a", "b"}), 2)
+    owner._session, owner.me, owner._view = sa, "a", view
+    sa_tile = sa.declare_queryable(owner.keys.key("cluster", "tile", "**"), owner._on_tile)
+    joiner, joined, _ = _cluster(_config(None), Stats())
+    joiner._session, joiner.me, joiner._view = sb, "b", view
+    assert wait_until(lambda: joiner._fetch_one((0, 0), None, 1.0) is not None, 10)
+
+    journal = jobs[2:]  # ISMs 3..6, in arrival order
+    for index in [(0, 0), (1, 0)]:
+        joiner._journal[index] = list(journal)
+        assert joiner._pull(index, True) == 1
+    assert joiner.stats.snapshot()[0]["cluster_isms_replayed"] == 4  # 5 and 6, per tile
+    for index in [(0, 0), (1, 0)]:
+        held = joined.tiles[index].applied
+        assert held == {KEYS[0]: (6.0, 1006), KEYS[1]: (5.0, 1005)}
+    assert _planes(joined) == _planes(reference)
+
+    # What the marks prevent: the copy without them (as before they were stored) replays all
+    # four journaled ISMs, and 3 and 4 end up fused twice.
+    keep, _ = replay_plan(journal, {})
+    assert len(keep) == 4
+    unmarked = TiledMap("lab", "map", TileLattice(RES, T))
+    for job in jobs[:4] + keep:
+        job.fuse(unmarked, None)
+    assert _planes(unmarked) != _planes(reference)
+    sa_tile.undeclare()
+    keeper.close(10.0)
+
+
+def _small_member(tmp_path: Path, name: str, peers: list[ServerProcess],
+                  servers: int) -> ServerProcess:
+    """A cluster member (this file's tile size and resolution) whose memory budget holds
+    about one tile, so it evicts nearly every tile it fuses (outside the robots' own tiles)."""
+    sections: dict[str, dict[str, Any]] = {
+        "map": {"resolution": RES, "tile_size": TILE},
+        "cluster": {"enabled": True, "replicas": 2, "fetch_cache_s": 0.0},
+        "storage": {"directory": str(tmp_path / f"store-{name}"),
+                    "checkpoint_interval_s": 0.5, "memory_budget_mb": 0.002},
+        "tiles": {"roi_radius_tiles": 0},
+        "zenoh": {"listen": [free_tcp_endpoint()], "connect": [p.endpoint for p in peers]},
+    }
+    return start_server(tmp_path, sections, name=name, servers=servers, wait=40.0)
+
+
+@pytest.mark.flaky(reruns=2)
+@pytest.mark.timeout(180)
+def test_a_joiner_pulling_evicted_tiles_equals_a_single_server(
+        tmp_path: Path, procs: list[ServerProcess]) -> None:
+    """Member a evicts nearly every tile (memory budget) while the fleet publishes; member b
+    joins while the fleet keeps publishing (so its journal holds ISMs a's evicted copies
+    already have) and pulls every tile from a (replicas 2 over 2 members: both own all).
+    b's map equals a single reference server's bit for bit: no ISM lost, none fused twice."""
+    a = _small_member(tmp_path, "a", [], 1)
+    procs.append(a)
+    ref = _reference(tmp_path, [a])
+    procs.append(ref)
+    fleet = Fleet(a.endpoint, seed=23)
+    observer = MapClient.connect(a.endpoint, timeout=5.0)
+    try:
+        assert wait_until(lambda: fleet.linked(a, ref), 30)
+        fleet.publish(4)
+        assert wait_until(lambda: _all_fused(observer, fleet.sent, 1), 60)
+        assert observer.stats().counters.get("tiles_evicted", 0) > 0
+        stop = threading.Event()
+
+        def publish_meanwhile() -> None:
+            while not stop.is_set():
+                fleet.publish(1)
+                stop.wait(0.15)
+
+        publisher = threading.Thread(target=publish_meanwhile)
+        publisher.start()
+        try:
+            b = _small_member(tmp_path, "b", [a], 2)
+            procs.append(b)
+            stop.wait(1.0)  # and a little after b declared itself
+        finally:
+            stop.set()
+            publisher.join(30)
+        assert wait_until(lambda: _all_fused(observer, 0, 2), 60)
+        stats = _member_stats(observer)
+        joined = next(st for st in stats.values()
+                      if st["counters"].get("cluster_tiles_pulled", 0) > 0)
+        assert joined["counters"].get("isms_fused", 0) < fleet.sent  # it did join late
+        expected = _reference_map(ref, fleet.sent)
+        assert np.abs(expected).sum() > 0
+        # b's own ISMs after the join may still be on their way: wait for them, then the
+        # comparison is exact (a tile fused twice never comes back to equal).
+        assert wait_until(lambda: max(st["counters"].get("isms_fused", 0)
+                                      for st in _member_stats(observer).values())
+                          >= fleet.sent, 60)
+        assert wait_until(lambda: np.array_equal(_submap(b.endpoint), expected), 30), \
+            "the joined member's map differs from the single server's"
+        assert np.array_equal(_submap(a.endpoint), expected)
+    finally:
+        observer.close()
+        fleet.close()

@@ -12,7 +12,7 @@ import zenoh
 from sogm_service.wire import codec
 from sogm_service.wire.messages import PoseMessage
 from tests.conftest import start_server, wait_until
-from tests.test_bounds_ism import RSS_BOUND_MB, baseline_rss_mb, rss_mb
+from tests.integration.test_hostile_isms_are_refused import RSS_BOUND_MB, baseline_rss_mb, rss_mb
 
 ROBOTS = 200
 POSES_PER_ROBOT = 50

@@ -20,7 +20,7 @@ from sogm_service.wire import codec
 from sogm_service.wire.errors import QUERY_CODES, BusyError, ServiceError
 from sogm_service.wire.messages import ErrorReply
 from tests.conftest import ServerProcess, start_server, wait_processed
-from tests.test_bounds_ism import RSS_BOUND_MB, baseline_rss_mb, rss_mb
+from tests.integration.test_hostile_isms_are_refused import RSS_BOUND_MB, baseline_rss_mb, rss_mb
 
 SPECIFIC = {"bad_parameter", "window_too_large", "out_of_world", "reply_too_large",
             "unknown_layer"}
@@ -59,7 +59,7 @@ def _code(client: MapClient, what: str, params: dict[str, object]) -> str:
     ({"x": "nan"}, "bad_parameter"),
     ({"yaw": "1e308"}, "ok"),  # a finite heading is a heading
     # the 100x100 reply of a 400 m window at 4 m cells read 64 M map cells; now it
-    # gathers 40 k (tests/test_coarse_sampling.py); 300 m at 0.1 m still reads 36 M
+    # gathers 40 k (tests/unit/core/map/test_gather.py); 300 m at 0.1 m still reads 36 M
     ({"width": "400", "height": "400", "resolution": "4"}, "ok"),
     ({"width": "300", "height": "300", "resolution": "0.1"}, "window_too_large"),
     # 200 x 200 cells: 40 kB as prob_u8, 160 kB as prob_f32 (max_reply_bytes = 100 kB)

@@ -49,7 +49,7 @@ pytestmark = pytest.mark.integration
 
 GET_TIMEOUT = 2.0
 WAIT = 10.0
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 _unique = itertools.count()
 
 

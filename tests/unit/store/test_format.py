@@ -8,6 +8,7 @@ import shutil
 import struct
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,11 +17,16 @@ from sogm_service.core import logodds
 from sogm_service.core.geodesy import GeoPoint
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tilemanager import TileManager
-from sogm_service.store.directory import DirectoryStore
+from sogm_service.core.map.tiletypes import Mark
+from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
 from sogm_service.store.format import (
     MAGIC,
+    MAX_APPLIED,
+    MAX_APPLIED_KEY,
+    Expectation,
     tile_file_name,
     tile_from_bytes,
+    tile_header,
     tile_to_bytes,
 )
 from sogm_service.wire.errors import TileFormatError
@@ -144,7 +150,8 @@ def test_values_outside_the_fixed_point_range_are_rejected() -> None:
         tile_from_bytes(tile_to_bytes(header(), bad))
 
 
-GOLDEN = Path(__file__).resolve().parents[2] / "data" / "sogm_golden_r0.050_t16_i+0003_j-0002.tile"
+GOLDEN = (Path(__file__).resolve().parents[2] / "data"
+          / "sogm_golden_r0.050_t16_i+0003_j-0002.tile")
 
 
 def test_a_tile_file_written_before_the_package_layout_loads_and_reencodes_byte_for_byte(
@@ -168,3 +175,133 @@ def test_a_tile_file_written_before_the_package_layout_loads_and_reencodes_byte_
         loaded = store.load(3, -2)
         assert loaded is not None
         np.testing.assert_array_equal(loaded.data, expected)
+
+
+# -- applied marks: the last ISM fused into a tile per ISM key, in the header's ``applied``
+# field.  Malformed fields are forged from the file layout in ``store/format.py``'s docstring
+# (prefix, JSON header, CRC-32, payload), not with the project's encoder.
+MARK_RES, MARK_T = 0.1, 16
+EXPECT = Expectation("lab", MARK_RES, MARK_T, "map")
+
+
+MARKS: dict[str, Mark] = {"sogm/lab/ism/r1/laser/obstacle": (12.5, 2**64 - 1),
+                          "sogm/lab/ism/r2/laser/obstacle": (7.0, 0),
+                          "sogm/lab/ism/r3/cam/people": (1700000000.25, 123456789)}
+
+
+def _stack(seed: int, n: int = 2) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.integers(-3000, 3000, (n, MARK_T, MARK_T)).astype(np.int16)
+
+
+def _json_header(blob: bytes) -> tuple[dict[str, Any], bytes]:
+    """The JSON header and the payload of a tile, read by the documented layout."""
+    magic, version, _, hlen = struct.unpack_from("<8sHHI", blob)
+    assert magic == b"SOGMTILE" and version == 1
+    (crc,) = struct.unpack_from("<I", blob, 16 + hlen)
+    assert zlib.crc32(blob[:16 + hlen]) == crc
+    return json.loads(blob[16:16 + hlen]), blob[20 + hlen:]
+
+
+def _forge(fields: dict[str, Any], payload: bytes) -> bytes:
+    """A tile file with this JSON header (valid CRC), by the documented layout."""
+    meta = json.dumps(fields, separators=(",", ":")).encode()
+    head = struct.pack("<8sHHI", b"SOGMTILE", 1, 0, len(meta)) + meta
+    return head + struct.pack("<I", zlib.crc32(head)) + payload
+
+
+_BAD_APPLIED: list[tuple[str, Any]] = [
+    ("a list", [["k", [1.0, 2]]]),
+    ("a string", "k"),
+    ("a mark that is not a pair", {"k": [1.0]}),
+    ("a mark that is a dict", {"k": {"stamp": 1.0, "digest": 2}}),
+    ("a string stamp", {"k": ["1.0", 2]}),
+    ("a boolean stamp", {"k": [True, 2]}),
+    ("a NaN stamp", {"k": [float("nan"), 2]}),
+    ("an infinite stamp", {"k": [float("inf"), 2]}),
+    ("a negative digest", {"k": [1.0, -1]}),
+    ("a digest of 2**64", {"k": [1.0, 2**64]}),
+    ("a float digest", {"k": [1.0, 2.5]}),
+    ("a boolean digest", {"k": [1.0, False]}),
+    ("an empty key", {"": [1.0, 2]}),
+    ("an over-long key", {"x" * (MAX_APPLIED_KEY + 1): [1.0, 2]}),
+    ("too many entries", {f"k{n}": [1.0, n] for n in range(MAX_APPLIED + 1)}),
+]
+
+
+def test_marks_survive_the_file_format_exactly() -> None:
+    data = _stack(1)
+    blob = tile_to_bytes(tile_header(EXPECT, 2, -3, ["a", "b"], 20.0, applied=MARKS), data)
+    fields, _ = _json_header(blob)
+    # What the file says, by the spec: {key: [stamp, digest]}, digests as exact JSON integers.
+    assert fields["applied"] == {k: [t, d] for k, (t, d) in MARKS.items()}
+    tile = tile_from_bytes(blob, EXPECT)
+    assert dict((k, (t, d)) for k, t, d in tile.header.applied) == MARKS
+    loaded = tile.as_loader_result()
+    assert len(loaded) == 5 and loaded[3] == {} and loaded[4] == MARKS
+    assert np.array_equal(loaded[1], data)
+
+
+def test_a_tile_without_marks_is_written_exactly_as_before() -> None:
+    data = _stack(2)
+    before = tile_header(EXPECT, 0, 0, ["a", "b"], 3.0)
+    blob = tile_to_bytes(tile_header(EXPECT, 0, 0, ["a", "b"], 3.0, applied={}), data)
+    fields, _ = _json_header(blob)
+    assert "applied" not in fields
+    assert before.applied == ()
+    loaded = tile_from_bytes(blob, EXPECT).as_loader_result()
+    assert len(loaded) == 3  # the old triple: loaders of old shape unchanged
+
+
+def test_the_writer_keeps_only_marks_a_reader_accepts() -> None:
+    """More than MAX_APPLIED marks: the newest by stamp are kept (never a file a reader would
+    refuse); a mark with a NaN stamp, an empty or over-long key, or a digest outside 64 bits
+    is left out."""
+    many: dict[str, Mark] = {f"k{n:05d}": (float(n), n) for n in range(MAX_APPLIED + 100)}
+    bad: dict[str, Mark] = {"nan": (float("nan"), 1), "": (1.0, 1),
+                            "x" * (MAX_APPLIED_KEY + 1): (1.0, 1), "big": (1.0, 2**64),
+                            "neg": (1.0, -1)}
+    header = tile_header(EXPECT, 0, 0, ["a"], 1.0, applied={**many, **bad})
+    assert len(header.applied) == MAX_APPLIED
+    assert {k for k, _, _ in header.applied} == {f"k{n:05d}" for n in range(100, MAX_APPLIED
+                                                                              + 100)}
+    tile = tile_from_bytes(tile_to_bytes(header, _stack(3, 1)), EXPECT)
+    assert len(tile.header.applied) == MAX_APPLIED
+
+
+@pytest.mark.parametrize(("what", "bad"), _BAD_APPLIED, ids=[w for w, _ in _BAD_APPLIED])
+def test_a_malformed_applied_field_is_refused(what: str, bad: Any) -> None:
+    fields, payload = _json_header(tile_to_bytes(tile_header(EXPECT, 0, 0, ["a"], 1.0),
+                                                 _stack(4, 1)))
+    fields["applied"] = bad
+    with pytest.raises(TileFormatError, match="applied"):
+        tile_from_bytes(_forge(fields, payload), EXPECT)
+    fields["applied"] = {"k": [1.0, 2]}  # the forging itself is sound: a good field loads
+    assert tile_from_bytes(_forge(fields, payload), EXPECT).header.applied == (("k", 1.0, 2),)
+
+
+def test_non_string_keys_cannot_reach_the_reader_but_are_refused() -> None:
+    """JSON object keys are strings: a header can only say ``{"1": ...}``, which is a key.  The
+    check stands for readers given other JSON (a number key is refused)."""
+    from sogm_service.store import format as fmt
+    with pytest.raises(TileFormatError, match="applied"):
+        fmt._applied_field({"applied": {1: [1.0, 2]}})
+
+
+def test_a_tile_with_a_bad_applied_field_is_quarantined(tmp_path: Path) -> None:
+    with DirectoryStore(tmp_path, "lab", MARK_RES, MARK_T, frame="map") as store:
+        store.write(1, 0, ["a"], _stack(5, 1), 1.0, applied={"k": (1.0, 2)})
+        fields, payload = _json_header(tile_to_bytes(tile_header(EXPECT, 0, 0, ["a"], 1.0),
+                                                     _stack(6, 1)))
+        fields["applied"] = {"k": [float("nan"), 2]}
+        bad = tmp_path / tile_file_name("lab", MARK_RES, MARK_T, 0, 0)
+        bad.write_bytes(_forge(fields, payload))
+        assert set(store.index()) == {(1, 0)}  # the header is checked when indexing
+        assert not bad.exists() and (tmp_path / QUARANTINE_DIR / bad.name).exists()
+        reason = (tmp_path / QUARANTINE_DIR / (bad.name + ".reason.txt")).read_text()
+        assert "applied" in reason
+        [problem] = store.problems
+        assert problem.path == bad and "applied" in problem.reason
+        assert store.load(0, 0) is None
+        good = store.load(1, 0)
+        assert good is not None and good.header.applied == (("k", 1.0, 2),)

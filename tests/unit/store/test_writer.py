@@ -10,9 +10,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from sogm_service.core.geometry import TileLattice
+from sogm_service.core.map.tiles import TiledMap
 from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
 from sogm_service.store.writer import TileWriter
+from tests.unit.service.cluster.test_handover import mild_ism
 from tests.unit.store.test_directory import LAYERS, RES, T, open_store, stack
+from tests.unit.store.test_format import MARK_RES, MARK_T
 
 
 def test_writer_persists_snapshots_and_flush_waits(tmp_path: Path) -> None:
@@ -128,3 +132,49 @@ def test_loads_during_rewrites_never_see_a_torn_file(tmp_path: Path) -> None:
             assert any(np.array_equal(tile.data, v) for v in versions)
         assert writer.close(10.0)
         assert store.problems == [] and not (tmp_path / QUARANTINE_DIR).exists()
+
+
+def test_marks_survive_evict_and_load_back_through_writer_and_store(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    store = _GatedStore(tmp_path, "lab", MARK_RES, MARK_T, frame="map")
+    store.gate = threading.Event()
+    writer = TileWriter(store)
+    tiled = TiledMap("lab", "map", TileLattice(MARK_RES, MARK_T), loader=writer.loader)
+    try:
+        for n, key in enumerate(["ism/r1", "ism/r2", "ism/r1"]):
+            inc, geom = mild_ism(rng, 10, 4)  # spans tiles (0, 0) and (1, 0)
+            tiled.fuse("l", inc, geom, "nearest", float(n + 1), mark=(key, (n + 1.0, 100 + n)))
+        expected = {"ism/r1": (3.0, 102), "ism/r2": (2.0, 101)}
+        for index in [(0, 0), (1, 0)]:
+            assert tiled.tiles[index].applied == expected
+
+        def submit(snap: Any) -> None:
+            writer.submit(snap.index[0], snap.index[1], snap.layers, snap.data, snap.stamp,
+                          token=snap.version, applied=snap.applied)
+
+        # Evicted while its snapshot still waits for the disk: back from the writer's queue.
+        tiled.evict((0, 0), before=submit)
+        assert writer.is_pending(0, 0) and not store.path_for(0, 0).exists()
+        again = tiled.get_tile((0, 0))
+        assert again is not None and again.applied == expected
+        store.gate.set()
+        assert writer.flush(10.0)
+        tiled.evict((0, 0), before=submit)
+        tiled.evict((1, 0), before=submit)
+        assert writer.flush(10.0) and not tiled.tiles
+        for index in [(0, 0), (1, 0)]:  # now from the files
+            tile = tiled.get_tile(index)
+            assert tile is not None and tile.applied == expected
+        # A restart: a new map over the same directory, marks from the files only.
+        fresh = TiledMap("lab", "map", TileLattice(MARK_RES, MARK_T), loader=store.loader)
+        fresh.stored = set(store.index())
+        tile = fresh.get_tile((1, 0))
+        assert tile is not None and tile.applied == expected
+        # A further fuse updates one key's mark; the other comes from the file.
+        inc, geom = mild_ism(rng, 10, 4)
+        fresh.fuse("l", inc, geom, "nearest", 4.0, mark=("ism/r2", (4.0, 103)))
+        assert tile.applied == {"ism/r1": (3.0, 102), "ism/r2": (4.0, 103)}
+    finally:
+        store.gate.set()
+        writer.close(10.0)
+        store.close()

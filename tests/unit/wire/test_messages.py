@@ -13,7 +13,7 @@ from pathlib import Path
 from sogm_service.wire import codec
 from sogm_service.wire.messages import SCHEMA_MODELS
 
-SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
+SCHEMAS = Path(__file__).resolve().parents[3] / "schemas"
 
 
 def test_committed_schemas_are_up_to_date() -> None:

@@ -73,7 +73,7 @@ def test_window_price_reads_what_mosaic_allocates() -> None:
     tiled = TiledMap("m", "map", TileLattice(0.05, 64))
     tiled.layer_id("a", create=True)
     seen = spy_mosaics(tiled)
-    # (a window 10x coarser than the map is gathered instead: tests/test_coarse_sampling.py)
+    # (a window 10x coarser than the map is gathered instead: tests/unit/core/map/test_gather.py)
     for args in [(1.3, -2.2, 0.4, 3.0, 2.0, 0.1), (0.0, 0.0, 0.0, 4.0, 4.0, 0.05)]:
         tiled.sample(window_geometry(*args), ["a"])
         price = fp.window_price(*args, 0.05)

@@ -32,10 +32,10 @@ from sogm_service.store.format import (
     tile_to_bytes,
 )
 from sogm_service.wire.errors import TileFormatError
+from tests.unit.store.test_format import GOLDEN
 
 H = 10.0  # half-life (s) of "people"
 BOX = (0, 0, 4, 4)
-GOLDEN = Path(__file__).parent / "data" / "sogm_golden_r0.050_t16_i+0003_j-0002.tile"
 
 
 def new_map(loader=None) -> TiledMap:  # type: ignore[no-untyped-def]
