@@ -5,29 +5,33 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
-from sogm_service.adapters.carmen import read_carmen
+from sogm_service.adapters.carmen import (
+    read_carmen,
+)
 from sogm_service.adapters.laser import scan_endpoints_world
 from sogm_service.apps.cli import main as cli_main
 from sogm_service.apps.replay import replay_carmen
-from sogm_service.core.geometry import GridGeometry
+from sogm_service.core.geometry import GridGeometry, window_geometry
+from sogm_service.sim.fleet import replay_scans
+from tests.conftest import ServerProcess, wait_processed
+from tests.helpers import INTEL_LOG, needs_intel
+from tests.raycast_reference import compare, reference_map
 from tests.unit.adapters.test_carmen import robotlaser_line, room_ranges
+from tests.unit.adapters.test_laser_lattice import DEVICE_MAX, USABLE, meets_targets
+from tests.unit.adapters.test_laser_lattice import RES as LATTICE_RES
 
 pytestmark = pytest.mark.integration
 
-# The repository is checked out with shared/ beside it (in CI), or the machine's shared data.
-LOG = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/carmen",
-                        Path("/work/shared/data/carmen"))
-            if (p / "intel-corrected.log.gz").exists()),
-           Path("shared/data/carmen")) / "intel-corrected.log.gz"
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@needs_intel
 def test_replayed_map_has_its_occupied_cells_on_beam_endpoints() -> None:
-    scans = list(read_carmen(LOG, limit=150))
-    result = replay_carmen(LOG, limit=150)
+    scans = list(read_carmen(INTEL_LOG, limit=150))
+    result = replay_carmen(INTEL_LOG, limit=150)
     assert result.scans == 150 and result.isms_fused == 150
     g, p = result.geometry, result.probabilities
     # Every beam endpoint (within the ISM's usable 20 m) as a cell of the returned map.
@@ -50,10 +54,10 @@ def test_replayed_map_has_its_occupied_cells_on_beam_endpoints() -> None:
     assert (p[path[:, 1], path[:, 0]] < 0.3).mean() > 0.99
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@needs_intel
 def test_replay_command_writes_the_png(tmp_path: Path) -> None:
     png = tmp_path / "intel.png"
-    assert cli_main(["replay", "carmen", str(LOG), "--limit", "40", "--png", str(png)]) == 0
+    assert cli_main(["replay", "carmen", str(INTEL_LOG), "--limit", "40", "--png", str(png)]) == 0
     assert png.stat().st_size > 1000
 
 
@@ -127,7 +131,7 @@ def _replay_window(scans: list) -> GridGeometry:  # type: ignore[type-arg]
     return window_geometry(w["x"], w["y"], w["yaw"], w["width"], w["height"], w["resolution"])
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@needs_intel
 def test_replay_into_a_running_server_through_a_zenoh_config_file(tmp_path: Path) -> None:
     """``--zenoh-config`` alone reaches the server: the file (not --connect) names where."""
     import json
@@ -141,9 +145,58 @@ def test_replay_into_a_running_server_through_a_zenoh_config_file(tmp_path: Path
         config.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [srv.endpoint]},
                                       "scouting": {"multicast": {"enabled": False}}}))
         png = tmp_path / "intel.png"
-        assert cli_main(["replay", "carmen", str(LOG), "--limit", "20", "--zenoh-config",
+        assert cli_main(["replay", "carmen", str(INTEL_LOG), "--limit", "20", "--zenoh-config",
                          str(config), "--png", str(png)]) == 0
         with MapClient.connect(srv.endpoint) as client:
             assert client.stats().counters.get("isms_fused") == 20
     finally:
         assert srv.terminate() == 0
+
+
+@needs_intel
+def test_replay_publishes_the_log_to_a_real_server(server: ServerProcess) -> None:
+    scans = list(read_carmen(INTEL_LOG, limit=60))
+    stats = replay_scans(scans, server.endpoint, robot="intel", speed=0.0)
+    assert stats.isms == 60 and stats.poses == 60
+    with server.client() as client:
+        counters = wait_processed(client, stats.isms)
+        assert counters.get("isms_fused", 0) == 60, counters
+        assert client.info().layers == ["obstacle"]
+        win = client.submap(x=0.0, y=0.0, width=12.0, height=12.0, layers=["obstacle"])
+    p = win.probabilities()[0]
+    geom = window_geometry(0.0, 0.0, 0.0, 12.0, 12.0, 0.05)
+    ends = np.vstack([scan_endpoints_world(s.ranges, s.angles, s.pose, 20.0) for s in scans])
+    uv = geom.world_to_index(ends)
+    keep = (uv[:, 0] >= 0) & (uv[:, 0] < geom.width) & (uv[:, 1] >= 0) & (uv[:, 1] < geom.height)
+    end_cells = np.zeros(geom.shape, np.uint8)
+    end_cells[uv[keep, 1], uv[keep, 0]] = 1
+    near_end = cv2.dilate(end_cells, np.ones((3, 3), np.uint8)).astype(bool)
+    occupied = p > 0.65
+    assert occupied.sum() > 300
+    assert (occupied & near_end).sum() / occupied.sum() > 0.99
+    start = geom.world_to_index(np.array([scans[0].pose.x, scans[0].pose.y]))
+    assert p[start[1], start[0]] < 0.3
+
+
+@needs_intel
+def test_replay_carmen_is_sharp_by_default() -> None:
+    from sogm_service.apps.replay import replay_carmen
+
+    scans = list(read_carmen(INTEL_LOG, limit=120))
+    result = replay_carmen(INTEL_LOG, limit=120)
+    g = result.geometry
+    centres = g.cell_centers()
+    cu = np.floor(centres[..., 0] / LATTICE_RES).astype(np.int64)
+    cv = np.floor(centres[..., 1] / LATTICE_RES).astype(np.int64)
+    box = (int(cu.min()), int(cv.min()), int(cu.max() - cu.min() + 1),
+           int(cv.max() - cv.min() + 1))
+    ref = reference_map([(s.pose.x, s.pose.y, s.pose.yaw, s.ranges, s.angles) for s in scans],
+                        LATTICE_RES, USABLE, DEVICE_MAX, box)
+    p = result.probabilities
+    mapped = np.where(p > 0.5, 1, np.where(p < 0.5, -1, 0))
+    # The reply's cell (r, c) is the map cell under its centre (nearest): put it there.
+    on_box = np.zeros(ref.logodds.shape, dtype=np.int16)
+    on_box[cv - box[1], cu - box[0]] = mapped
+    c = compare(on_box, ref)
+    print(f"replay carmen (120 scans): {c}")
+    assert meets_targets(c), c

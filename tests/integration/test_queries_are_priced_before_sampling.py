@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-import msgpack
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -13,12 +12,7 @@ from hypothesis import strategies as st
 
 from sogm_service.client.mapclient import MapClient
 from sogm_service.core.geometry import Pose2D
-from sogm_service.service.config import LimitSettings, ServiceConfig
-from sogm_service.service.server.admission import Admission
-from sogm_service.service.server.stats import Stats
-from sogm_service.wire import codec
-from sogm_service.wire.errors import QUERY_CODES, BusyError, ServiceError
-from sogm_service.wire.messages import ErrorReply
+from sogm_service.wire.errors import QUERY_CODES, ServiceError
 from tests.conftest import ServerProcess, start_server, wait_processed
 from tests.integration.test_hostile_isms_are_refused import RSS_BOUND_MB, baseline_rss_mb, rss_mb
 
@@ -121,29 +115,3 @@ def test_a_burst_of_large_windows_keeps_rss_and_the_map(srv: ServerProcess) -> N
         assert c.submap(width=10, height=10, encoding="logodds_i16").data.tobytes() \
             == before_map
         assert "query_errors_internal" not in c.stats().counters
-
-
-def test_heavy_queries_beyond_the_bound_are_busy_with_a_retry_hint() -> None:
-    """The bound itself, in one process (through a server, Zenoh hands one queryable's queries
-    to its callback one at a time today, so a second heavy query cannot overlap a first:
-    measured, NOTES-bounds.md; the bound matters once queries run on worker threads)."""
-    config = ServiceConfig(limits=LimitSettings(max_heavy_queries=2, busy_retry_s=0.5))
-    stats = Stats()
-    admission = Admission(config, stats)
-    with admission.heavy(), admission.heavy():
-        with pytest.raises(BusyError) as err, admission.heavy():
-            pass
-        assert err.value.code == "busy" and err.value.retry_after_s == 0.5
-    with admission.heavy():  # slots come back
-        pass
-    assert stats.snapshot()[0]["queries_busy"] == 1
-
-
-def test_busy_travels_with_its_hint_and_old_error_replies_still_decode() -> None:
-    from sogm_service.client.mapclient import _service_error
-
-    exc = _service_error(codec.encode(ErrorReply(code="busy", message="m", retry_after_s=0.5)))
-    assert exc.code == "busy" and exc.retry_after_s == 0.5
-    old = msgpack.packb({"code": "window_too_large", "message": "m", "parameter": "width"})
-    exc = _service_error(old)  # a reply of a server before the field: no hint
-    assert exc.code == "window_too_large" and exc.retry_after_s is None

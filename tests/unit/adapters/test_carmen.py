@@ -21,13 +21,8 @@ from sogm_service.adapters.carmen import (
     read_carmen,
 )
 from sogm_service.adapters.laser import scan_endpoints_world
-from sogm_service.core.geometry import window_geometry
-from sogm_service.sim.fleet import replay_scans
 from sogm_service.sim.offline import map_scans
-from tests.conftest import ServerProcess, wait_processed
-
-INTEL = Path("/work/shared/data/carmen/intel-corrected.log.gz")
-needs_intel = pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")
+from tests.helpers import INTEL_LOG, needs_intel
 
 GOOD = "FLASER 4 1.0 2.0 81.83 0.5 1.5 -2.0 0.25 9.0 9.0 9.0 123.5 host 124.0\n"
 
@@ -75,7 +70,7 @@ def test_malformed_lines_are_counted_and_skipped(tmp_path: Path, compress: bool)
 @needs_intel
 def test_intel_log_reads_whole_and_limit() -> None:
     stats = CarmenStats()
-    scans = list(read_carmen(INTEL, stats=stats))
+    scans = list(read_carmen(INTEL_LOG, stats=stats))
     assert len(scans) == 910 and stats.malformed == 0
     first = scans[0]
     assert first.ranges.shape == (180,) and first.ranges.dtype == np.float32
@@ -84,12 +79,12 @@ def test_intel_log_reads_whole_and_limit() -> None:
     assert first.stamp == pytest.approx(32.9068)
     # The log's own stamps step back a little four times; the reader keeps them as they are.
     assert scans[-1].stamp - scans[0].stamp > 2000
-    assert len(list(read_carmen(INTEL, limit=7))) == 7
+    assert len(list(read_carmen(INTEL_LOG, limit=7))) == 7
 
 
 @needs_intel
 def test_intel_slice_map_occupied_on_endpoints_and_corridors_free() -> None:
-    scans = list(read_carmen(INTEL, limit=250))[100:250]
+    scans = list(read_carmen(INTEL_LOG, limit=250))[100:250]
     usable = 15.0
     geom, p = map_scans(scans, resolution=0.05, usable_range=usable)
     ends = np.vstack([scan_endpoints_world(s.ranges, s.angles, s.pose, min(usable, s.max_range))
@@ -110,32 +105,6 @@ def test_intel_slice_map_occupied_on_endpoints_and_corridors_free() -> None:
                       for a, b in itertools.pairwise(poses)])
     puv = geom.world_to_index(path)
     assert (p[puv[:, 1], puv[:, 0]] < 0.3).mean() > 0.99
-
-
-@needs_intel
-@pytest.mark.integration
-def test_replay_publishes_the_log_to_a_real_server(server: ServerProcess) -> None:
-    scans = list(read_carmen(INTEL, limit=60))
-    stats = replay_scans(scans, server.endpoint, robot="intel", speed=0.0)
-    assert stats.isms == 60 and stats.poses == 60
-    with server.client() as client:
-        counters = wait_processed(client, stats.isms)
-        assert counters.get("isms_fused", 0) == 60, counters
-        assert client.info().layers == ["obstacle"]
-        win = client.submap(x=0.0, y=0.0, width=12.0, height=12.0, layers=["obstacle"])
-    p = win.probabilities()[0]
-    geom = window_geometry(0.0, 0.0, 0.0, 12.0, 12.0, 0.05)
-    ends = np.vstack([scan_endpoints_world(s.ranges, s.angles, s.pose, 20.0) for s in scans])
-    uv = geom.world_to_index(ends)
-    keep = (uv[:, 0] >= 0) & (uv[:, 0] < geom.width) & (uv[:, 1] >= 0) & (uv[:, 1] < geom.height)
-    end_cells = np.zeros(geom.shape, np.uint8)
-    end_cells[uv[keep, 1], uv[keep, 0]] = 1
-    near_end = cv2.dilate(end_cells, np.ones((3, 3), np.uint8)).astype(bool)
-    occupied = p > 0.65
-    assert occupied.sum() > 300
-    assert (occupied & near_end).sum() / occupied.sum() > 0.99
-    start = geom.world_to_index(np.array([scans[0].pose.x, scans[0].pose.y]))
-    assert p[start[1], start[0]] < 0.3
 
 
 # -- CARMEN's field-of-view rules and ROBOTLASER1 (issue 19) -------------------------------
@@ -249,7 +218,7 @@ def test_line_type_names_cannot_grow_without_bound(tmp_path: Path) -> None:
 @needs_intel
 def test_intel_log_line_types() -> None:
     stats = CarmenStats()
-    assert sum(1 for _ in read_carmen(INTEL, stats=stats)) == 910
+    assert sum(1 for _ in read_carmen(INTEL_LOG, stats=stats)) == 910
     assert stats.types == {"FLASER": 910, "NEFF": 910, "ODOM": 14541, "PARAM": 2, "comment": 2}
     assert stats.skipped == 14541 + 910 + 2 + 2 and stats.malformed == 0
     # 180 beams: CARMEN's 179 deg, from -90 deg (as before: the Intel map does not move).

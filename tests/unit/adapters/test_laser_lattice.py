@@ -9,7 +9,6 @@ where the reference says unknown <= 1 % of the observed cells.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -23,15 +22,12 @@ from sogm_service.core.geometry import Pose2D, TileLattice
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.resample import lattice_offset, tile_patches
 from sogm_service.sim.sensors import TiltedLaser
+from tests.helpers import INTEL_LOG, needs_intel
 from tests.raycast_reference import Comparison, compare, reference_map
 
 RES = 0.05
 USABLE = 20.0
 DEVICE_MAX = 80.0
-LOG = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/carmen",
-                        Path("/work/shared/data/carmen"))
-            if (p / "intel-corrected.log.gz").exists()),
-           Path("shared/data/carmen")) / "intel-corrected.log.gz"
 
 
 # -- synthetic scans ------------------------------------------------------------------------
@@ -175,36 +171,12 @@ def test_synthetic_scans_meet_the_targets_on_the_lattice_and_not_through_biodds(
     assert sharp.free_where_unknown < smeared.free_where_unknown
 
 
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
+@needs_intel
 def test_intel_log_meets_the_targets_on_the_lattice() -> None:
-    scans = list(read_carmen(LOG, limit=300))
+    scans = list(read_carmen(INTEL_LOG, limit=300))
     sharp = measure(scans, "lattice")
     print(f"intel (300 scans): lattice {sharp}")
     assert meets_targets(sharp), sharp
-
-
-@pytest.mark.skipif(not LOG.exists(), reason="shared/data/carmen not beside the checkout")
-def test_replay_carmen_is_sharp_by_default() -> None:
-    from sogm_service.apps.replay import replay_carmen
-
-    scans = list(read_carmen(LOG, limit=120))
-    result = replay_carmen(LOG, limit=120)
-    g = result.geometry
-    centres = g.cell_centers()
-    cu = np.floor(centres[..., 0] / RES).astype(np.int64)
-    cv = np.floor(centres[..., 1] / RES).astype(np.int64)
-    box = (int(cu.min()), int(cv.min()), int(cu.max() - cu.min() + 1),
-           int(cv.max() - cv.min() + 1))
-    ref = reference_map([(s.pose.x, s.pose.y, s.pose.yaw, s.ranges, s.angles) for s in scans],
-                        RES, USABLE, DEVICE_MAX, box)
-    p = result.probabilities
-    mapped = np.where(p > 0.5, 1, np.where(p < 0.5, -1, 0))
-    # The reply's cell (r, c) is the map cell under its centre (nearest): put it there.
-    on_box = np.zeros(ref.logodds.shape, dtype=np.int16)
-    on_box[cv - box[1], cu - box[0]] = mapped
-    c = compare(on_box, ref)
-    print(f"replay carmen (120 scans): {c}")
-    assert meets_targets(c), c
 
 
 def test_sensor_aligned_ism_is_unchanged() -> None:

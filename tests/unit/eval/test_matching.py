@@ -13,15 +13,14 @@ from sogm_service.core.matching.match import MatchParams, match_window
 from sogm_service.eval import matching as em
 from sogm_service.service.config import MatchingSettings
 from sogm_service.service.server.matcher import match_params
+from tests.helpers import INTEL_LOG, needs_intel
 
-INTEL = em.INTEL_LOG
-needs_intel = pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")
 SLICE = dict(start=110, stride=3, seed=5)
 
 
 @pytest.fixture(scope="module")
 def scans() -> list:  # type: ignore[type-arg]
-    return list(read_carmen(INTEL, limit=140))
+    return list(read_carmen(INTEL_LOG, limit=140))
 
 
 @needs_intel
@@ -63,7 +62,7 @@ def test_accepted_corrections_land_near_the_truth(scans: list) -> None:  # type:
 def test_command_prints_the_trade_off_table(tmp_path: Path,
                                             capsys: pytest.CaptureFixture[str]) -> None:
     out_csv = tmp_path / "trials.csv"
-    assert em.main([str(INTEL), "--limit", "125", "--start", "115", "--stride", "5",
+    assert em.main([str(INTEL_LOG), "--limit", "125", "--start", "115", "--stride", "5",
                     "--min-inliers", "6,12", "--quiet", "--csv", str(out_csv)]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| ratio=1 |")]

@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 
-from sogm_service.eval import figures
 from sogm_service.eval import segmentation as ev
 
 CLASSES = ("unknown", "floor", "table", "obstacle")
@@ -95,14 +94,6 @@ def test_tuning_keeps_the_best_parameter_set(result: ev.EvaluationResult) -> Non
                              + ev.metrics.undersegmentation_error(lab, s.segments))
         scores.append(float(np.mean(per_scene)))
     assert result.chosen[("SEVDS-E", 8)] == grid[int(np.argmin(scores))]
-
-
-def test_line_plot_draws_series_and_legend() -> None:
-    img = figures.line_plot({"a": ([1, 2, 3], [0.1, 0.5, 0.2]), "b": ([1, 3], [0.3, 0.3])},
-                            "title", "x", "y", size=(400, 300))
-    assert img.shape == (300, 400, 3)
-    for colour in figures.COLOURS[:2]:
-        assert np.any(np.all(img == colour, axis=2)), f"series colour {colour} not drawn"
 
 
 def test_cli_parser_and_main(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

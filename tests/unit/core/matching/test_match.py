@@ -12,7 +12,6 @@ import json
 import math
 from collections import Counter
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -27,6 +26,7 @@ from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.core.matching import match as mt
 from sogm_service.core.resample import resample_logodds
+from tests.helpers import INTEL_LOG, needs_intel
 
 RES = 0.05
 PLAN = 640
@@ -424,7 +424,6 @@ def test_benchmark_match_returns_timings() -> None:
 # The real Intel Research Lab log
 
 
-INTEL = Path("/work/shared/data/carmen/intel-corrected.log.gz")
 INTEL_RES = 0.05
 INTEL_RANGE = 8.0  # usable laser range (m): the ISM stays a few hundred cells wide
 
@@ -442,12 +441,12 @@ def _fuse_into(state: npt.NDArray[np.int16], map_geom: GridGeometry, geom: GridG
     logodds.bayes_update(view, inc, logodds.clamp_limits())
 
 
-@pytest.mark.skipif(not INTEL.exists(), reason="Intel log not available")
+@needs_intel
 def test_intel_perturbed_isms_end_closer_to_the_corrected_poses() -> None:
     """Map the log's corrected poses incrementally; every 10th scan (after a warm-up) is first
     sent with a perturbed pose (up to 0.3 m = 6 cells, 5 degrees) and matched against the map
     built so far.  Refused matches keep the perturbed pose (what the server fuses)."""
-    scans = list(read_carmen(INTEL, limit=700))
+    scans = list(read_carmen(INTEL_LOG, limit=700))
     xy = np.array([[s.pose.x, s.pose.y] for s in scans])
     lo = np.floor(xy.min(axis=0) - INTEL_RANGE - 2)
     size = np.ceil((xy.max(axis=0) + INTEL_RANGE + 2 - lo) / INTEL_RES).astype(int)

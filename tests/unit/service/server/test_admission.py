@@ -9,10 +9,10 @@ import pytest
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
 from sogm_service.core.map.tiles import TiledMap
-from sogm_service.service.config import ServiceConfig
+from sogm_service.service.config import LimitSettings, ServiceConfig
 from sogm_service.service.server.admission import Admission
 from sogm_service.service.server.stats import Stats
-from sogm_service.wire.errors import IsmRejectedError
+from sogm_service.wire.errors import BusyError, IsmRejectedError
 from sogm_service.wire.messages import IsmMessage, PoseModel
 
 T = 32  # 2 KiB per plane
@@ -77,3 +77,19 @@ def test_isms_that_add_no_plane_are_accepted_over_the_budget(setup: tuple[TiledM
         with pytest.raises(IsmRejectedError) as refused:
             admission.check_ism(_ism(0), layer, None, tiled)
         assert refused.value.code == "memory_budget"
+
+
+def test_heavy_queries_beyond_the_bound_are_busy_with_a_retry_hint() -> None:
+    """The bound itself, in one process (through a server, Zenoh hands one queryable's queries
+    to its callback one at a time today, so a second heavy query cannot overlap a first:
+    measured, NOTES-bounds.md; the bound matters once queries run on worker threads)."""
+    config = ServiceConfig(limits=LimitSettings(max_heavy_queries=2, busy_retry_s=0.5))
+    stats = Stats()
+    admission = Admission(config, stats)
+    with admission.heavy(), admission.heavy():
+        with pytest.raises(BusyError) as err, admission.heavy():
+            pass
+        assert err.value.code == "busy" and err.value.retry_after_s == 0.5
+    with admission.heavy():  # slots come back
+        pass
+    assert stats.snapshot()[0]["queries_busy"] == 1
