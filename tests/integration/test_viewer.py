@@ -1,5 +1,5 @@
-"""The live map viewer (``sogm-service view``): pure parts, the web server's guards, and the page
-in a real headless browser (Debian's chromium + chromedriver through selenium).
+"""The live map viewer (``sogm-service view``): the web server's guards and the page in a real
+headless browser (Debian's chromium + chromedriver through selenium).
 
 The browser tests share one map server process, one viewer process and one browser (module
 fixtures, in file order); the last one kills the map server and starts another on the same
@@ -8,7 +8,6 @@ endpoint.  Every wait is a bounded wait for a condition (WebDriverWait), never a
 
 from __future__ import annotations
 
-import asyncio
 import http.client
 import json
 import math
@@ -23,174 +22,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 import pytest
 
-from sogm_service.apps.viewer import allowed_hosts, is_loopback, main, parse_http
-from sogm_service.apps.viewer.outbox import Message, Outbox
-from sogm_service.apps.viewer.tiles import (
-    Lattice,
-    View,
-    ViewError,
-    known_at_level,
-    parse_view,
-    visible_tiles,
-)
-from sogm_service.client.mapclient import MapClient, ism_footprint
+from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import free_tcp_endpoint, wait_listening
 from sogm_service.core.geometry import Pose2D
 from tests.conftest import ServerProcess, start_server, wait_until
+from tests.unit.apps.viewer.test_tiles import CHAIR, OBSTACLE, RES
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path(shutil.which("chromedriver") or "/usr/bin/chromedriver")
 UNKNOWN_RGB = (70, 110, 150)  # apps/render.py UNKNOWN_BGR, as the page shows it
-OBSTACLE = "r1/laser/obstacle"
-CHAIR = "r1/cam/chair"
-RES = 0.05
-
-
-# -- pure parts -------------------------------------------------------------------------------
-def test_level_is_the_finest_whose_pixels_cover_a_screen_pixel() -> None:
-    lat = Lattice(RES, 256)
-    assert lat.span == pytest.approx(12.8)
-    assert lat.level_for(20.0) == 0  # 1 cell = 1 screen px at 20 px/m
-    assert lat.level_for(100.0) == 0
-    assert lat.level_for(19.0) == 1  # a cell would be < 1 px: one level coarser
-    assert lat.level_for(5.0) == 2
-    assert lat.level_for(5.0 / 1024) == 12
-    assert lat.level_for(0.0) == lat.level_for(float("nan")) == 16
-
-
-def test_visible_tiles_are_the_known_ones_in_the_box_nearest_first_and_bounded() -> None:
-    lat = Lattice(RES, 256)
-    known = {(0, 0), (1, 0), (5, 5), (-1, -1), (40, 0)}
-    view = View(-1.0, -1.0, 30.0, 10.0, 20.0)
-    specs = visible_tiles(view, lat, known_at_level(known, 0), 0)
-    assert [(s.a, s.b) for s in specs] == [(1, 0), (0, 0), (-1, -1)]  # (5, 5), (40, 0) outside
-    assert specs[0].x0 == pytest.approx(12.8) and specs[0].resolution == pytest.approx(RES)
-    assert specs[0].key == "class|0|1|0"
-    # one level up, four lattice tiles per display tile; negatives floor
-    assert known_at_level(known, 1) == {(0, 0), (2, 2), (-1, -1), (20, 0)}
-    many = {(i, j) for i in range(30) for j in range(30)}
-    big = View(0.0, 0.0, 30 * 12.8, 30 * 12.8, 20.0)
-    assert len(visible_tiles(big, lat, many, 0, limit=10)) == 10
-    # a huge box over a small map walks the map, not the box
-    huge = View(-1e6, -1e6, 1e6, 1e6, 1e-3)
-    assert {(s.a, s.b) for s in visible_tiles(huge, lat, known, 0)} == known
-
-
-def test_parse_view_accepts_a_good_view_and_refuses_bad_ones_with_a_code() -> None:
-    layers = [OBSTACLE, CHAIR]
-    good = {"xmin": 0, "ymin": 0, "xmax": 10, "ymax": 5, "px_per_m": 30, "mode": "fused",
-            "method": "max", "layers": [CHAIR, "nope", OBSTACLE]}
-    view = parse_view(good, layers)
-    assert view.layers == (OBSTACLE, CHAIR) and view.signature() == f"fused:max:{OBSTACLE},{CHAIR}"
-    assert parse_view({**good, "mode": "layer", "layer": CHAIR}, layers).signature() \
-        == f"layer:{CHAIR}"
-    bad = [({**good, "xmin": float("nan")}, "bad_view"), ({**good, "xmax": -1}, "bad_view"),
-           ({**good, "px_per_m": 0}, "bad_view"), ({**good, "xmax": 1e9}, "bad_view"),
-           ({**good, "xmin": "a"}, "bad_view"), ({**good, "mode": "rm -rf"}, "bad_mode"),
-           ({**good, "method": "sum"}, "bad_method"), ({**good, "layers": "x"}, "bad_layers"),
-           ({**good, "mode": "layer", "layer": "nope"}, "unknown_layer")]
-    for msg, code in bad:
-        with pytest.raises(ViewError) as exc:
-            parse_view(msg, layers)
-        assert exc.value.code == code, msg
-
-
-def test_outbox_never_grows_and_drops_the_oldest_droppable_message() -> None:
-    dropped: list[str] = []
-    box = Outbox(capacity=3)
-    box.put(Message("control", droppable=False))
-    for k in range(5):
-        box.put(Message(f"tile{k}", kind="tile", on_drop=lambda k=k: dropped.append(f"tile{k}")))
-    assert len(box) == 3 and box.dropped == 3
-    assert dropped == ["tile0", "tile1", "tile2"]
-
-    async def take() -> list[str | bytes]:
-        out = []
-        for _ in range(3):
-            msg = await box.get()
-            assert msg is not None
-            out.append(msg.data)
-        return out
-
-    assert asyncio.run(take()) == ["control", "tile3", "tile4"]
-    box.close()
-    assert asyncio.run(box.get()) is None
-
-
-def test_a_message_that_cannot_be_json_is_dropped_not_raised() -> None:
-    from sogm_service.apps.viewer.app import Connection
-    from sogm_service.apps.viewer.hub import HubSettings, MapHub
-
-    conn = Connection(None, MapHub(HubSettings()), None, 1.0, 8)  # type: ignore[arg-type]
-    conn.send({"type": "stats", "isms_per_s": float("nan")})  # a server's NaN must not kill
-    assert len(conn.outbox) == 0  # the ticker that pushes to every page
-    conn.send({"type": "stats", "isms_per_s": 1.0})
-    assert len(conn.outbox) == 1
-
-
-def test_http_address_parsing_and_the_loopback_rule() -> None:
-    assert parse_http("127.0.0.1:8080") == ("127.0.0.1", 8080)
-    assert parse_http("[::1]:0") == ("::1", 0)
-    assert parse_http(":9000") == ("127.0.0.1", 9000)
-    for bad in ("8080", "host:", "host:99999", "host:http"):
-        with pytest.raises(ValueError):
-            parse_http(bad)
-    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
-    assert not is_loopback("0.0.0.0") and not is_loopback("192.0.2.1")
-    assert "0.0.0.0" not in allowed_hosts("0.0.0.0", [])
-    assert "viewer.example" in allowed_hosts("127.0.0.1", ["viewer.example"])
-
-
-def test_view_refuses_to_listen_beyond_loopback_without_being_told(
-        capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["--http", "0.0.0.0:8080"]) == 2
-    err = capsys.readouterr().err
-    assert "refusing to listen on 0.0.0.0" in err and "ssh -L" in err
-    assert main(["--http", "nonsense"]) == 2
-
-
-def test_ism_footprint_from_a_header_built_by_msgpack_alone() -> None:
-    # The spec's fields, packed by msgpack itself (not the project's encoder).
-    header = {"resolution": 0.1, "width": 20, "height": 10, "encoding": "prob_u8",
-              "origin": {"x": 1.0, "y": 2.0, "yaw": math.pi / 2}, "robot": "r9",
-              "data": bytes(200)}
-    fp = ism_footprint("ism/r9/cam/chair", msgpack.packb(header))
-    assert fp is not None and fp.robot == "r9" and fp.layer is None
-    expected = [(1.0, 2.0), (1.0, 4.0), (0.0, 4.0), (0.0, 2.0)]  # rotated 90 degrees
-    assert np.allclose(fp.corners, expected)
-    for bad in (b"\xc1garbage", msgpack.packb([1, 2]), msgpack.packb({**header, "width": -1}),
-                msgpack.packb({**header, "resolution": float("nan")}),
-                msgpack.packb({**header, "origin": {"x": "a"}}),
-                msgpack.packb({k: v for k, v in header.items() if k != "height"})):
-        assert ism_footprint("ism/x", bad) is None
-
-
-def test_cursor_latitude_longitude_follow_the_maps_datum() -> None:
-    from sogm_service.apps.viewer.hub import HubSettings, MapHub
-    from sogm_service.core.geodesy import LocalTangentPlane
-    from sogm_service.wire.messages import GeodeticFix, InfoReply
-
-    datum = GeodeticFix(latitude=48.2, longitude=16.37, altitude=0.0)
-    info = InfoReply(map="m", frame="map", server_id="s", resolution=RES, tile_size=256,
-                     eps0=0.001, logodds_scale=1000.0, layers=["a", "b"], tiles=[(0, 0)],
-                     bounds=(0.0, 0.0, 12.8, 12.8), datum=datum)
-    msg = MapHub(HubSettings())._info_message(info)
-    geo = msg["geo"]
-    truth = LocalTangentPlane(datum).to_geodetic(130.0, -75.0)
-    # what the page computes from the message for a cursor at (130, -75) m: first order at the
-    # datum, within 1e-7 deg (about 1 cm) of the exact conversion this close to it
-    assert geo["latitude"] - 75.0 * geo["deg_lat_per_m"] == pytest.approx(truth.latitude, abs=1e-7)
-    assert geo["longitude"] + 130.0 * geo["deg_lon_per_m"] == pytest.approx(truth.longitude,
-                                                                          abs=1e-7)
-    # the legend's colours are the tiles' (render.class_colors, BGR there)
-    from sogm_service.apps.render import class_colors
-
-    assert msg["palette"] == ["#{:02x}{:02x}{:02x}".format(*c[::-1]) for c in class_colors(2)]
-    assert msg["unknown"] == "#466e96"
 
 
 # -- the viewer process and a map server ---------------------------------------------------------
