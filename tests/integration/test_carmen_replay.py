@@ -61,7 +61,7 @@ def test_replay_command_writes_the_png(tmp_path: Path) -> None:
     assert png.stat().st_size > 1000
 
 
-# -- logs without usable scans, ROBOTLASER1-only logs, the line summary (issue 19) ---------
+# -- logs without usable scans, ROBOTLASER1-only logs, the line summary --------------------
 @pytest.mark.parametrize("content", [
     "# ODOM only\n" + "ODOM 0 0 0 0 0 0 1.0 host 1.0\n" * 20,
     "",

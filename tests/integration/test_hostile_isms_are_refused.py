@@ -1,5 +1,6 @@
-"""Issue 14 through a real server: hostile but valid ISMs and poses are refused from their
-header with their code, the map stays bit-identical, and the server's memory stays bounded."""
+"""Admission before work, through a real server: hostile but valid ISMs and poses are refused
+from their header with their code, the map stays bit-identical, and the server's memory stays
+bounded."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 14 through a real server: poses coalesced latest-per-robot and every one counted;
+"""Bounds of a real server: poses coalesced latest-per-robot and every one counted;
 robot names bounded; a second server on a locked store says so in one line and exits 2."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 14 through a real server: queries are priced before sampling (cells read at map
+"""Through a real server: queries are priced before sampling (cells read at map
 resolution, reply bytes, heavy queries at once); no number can make one fail as internal."""
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
-"""The ROS 2 bridge against a ROS 2 side built from the spec, over real Zenoh sessions.
+"""The ROS 2 bridge against a ROS 2 side built from rmw_zenoh's wire as documented by the
+rmw_zenoh project, over real Zenoh sessions.
 
-The "ROS" side here follows ``shared/ros2-rmw_zenoh.md`` by hand: keys and token keys are
+The "ROS" side here follows that documentation by hand: keys and token keys are
 literal strings, CDR comes from rosbags, attachments are ``struct.pack`` + xxhash.  Nothing on
 that side uses the project's own encoders.
 """

@@ -107,7 +107,7 @@ def test_intel_slice_map_occupied_on_endpoints_and_corridors_free() -> None:
     assert (p[puv[:, 1], puv[:, 0]] < 0.3).mean() > 0.99
 
 
-# -- CARMEN's field-of-view rules and ROBOTLASER1 (issue 19) -------------------------------
+# -- CARMEN's field-of-view rules and ROBOTLASER1 ------------------------------------------
 @pytest.mark.parametrize(("n", "first_deg", "step_deg", "fov_deg"), [
     (181, -90.0, 1.0, 180.0), (180, -90.0, 1.0, 179.0),
     (361, -90.0, 0.5, 180.0), (360, -90.0, 0.5, 179.5),

@@ -1,4 +1,5 @@
-"""Evidence lands where the sensor put it (issue 19, item 1).
+"""Evidence lands where the sensor put it: laser ISMs cast on the map lattice
+(adapters/laser_lattice).
 
 The project's map is compared with an independent ray-casting log-odds mapper
 (:mod:`tests.raycast_reference`: Bresenham per beam on the map lattice, the same range rules)

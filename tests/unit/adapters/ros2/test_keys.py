@@ -31,7 +31,7 @@ SPEC_HASHES = {  # the type hashes rmw_zenoh's documentation lists
 }
 
 
-# rmw_zenoh's docs/design.md: the add_two_ints service key (a service hash of known value).
+# The add_two_ints service key of rmw_zenoh's own documentation (a service hash of known value).
 ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
 
 

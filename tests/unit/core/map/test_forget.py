@@ -1,4 +1,4 @@
-"""Layers that forget (issue 19, item 6): decay toward unknown with a half-life, lazily per tile.
+"""Layers that forget (core/map/forget): decay toward unknown with a half-life, lazily per tile.
 
 Expected values are computed here from the rule (:mod:`sogm_service.core.map.forget`): a read at
 ``now`` gives ``trunc(l * 0.5 ** ((now - t_d) / h))`` (float64, toward zero); a write at ``t``

@@ -1,4 +1,4 @@
-"""Coarse windows are gathered (issue 14, finding 3): only the cells each output cell
+"""Coarse windows are gathered (core/map/gather): only the cells each output cell
 interpolates from are read, with the full path's results, and priced at what they read."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Tiles keep one plane per layer written (adding a layer copies nothing) and a fuse is
-transactional: if it fails half-way no tile has changed (issue 14)."""
+transactional: if it fails half-way no tile has changed."""
 
 from __future__ import annotations
 
@@ -94,8 +94,8 @@ def test_a_tile_written_in_one_of_1000_layers_holds_one_plane() -> None:
 
 
 def test_1000_new_layers_on_the_same_4_tiles_cost_memory_linear_in_planes_written() -> None:
-    """Issue 14: 1,000 tiny ISMs, each a new layer, on the 4 tiles around one corner (each
-    used to copy every tile's whole stack)."""
+    """1,000 tiny ISMs, each a new layer, on the 4 tiles around one corner: memory grows with
+    the planes written, never with a copy of every tile's whole stack."""
     m = new_map()
     corner = GridGeometry(RES, 2, 2, Pose2D(SPAN - RES, SPAN - RES, 0.0))
     quad = {(0, 0), (1, 0), (0, 1), (1, 1)}

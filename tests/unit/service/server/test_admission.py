@@ -1,5 +1,6 @@
 """Admission prices an ISM by the planes it can add: a tile holds one plane per layer written
-into it, so a new tile costs one plane, not one per layer of the map (issue 14)."""
+into it, so a new tile costs one plane, not one per layer of the map; heavy queries beyond
+their bound are refused as busy with a retry hint."""
 
 from __future__ import annotations
 
