@@ -8,7 +8,7 @@ rules as the project's laser model: non-finite, non-positive and no-return readi
 (end cell included, no hit); a hit's cell is occupied, the cells before it free.  Each cell is
 updated at most once per scan, occupied winning over free; log-odds in 1/1000 nat, clamped.
 
-Also the two comparison measures of issue 19: occupied IoU and free-where-unknown.
+Also the two comparison measures: occupied IoU and free-where-unknown.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 
 Every figure is a ratio against a baseline measured in the same run (medians of repeated,
 interleaved runs), with the absolute numbers beside it; see ``docs/performance.md``.  This is a
-benchmark, never a test: ``tests/test_bench.py`` runs ``--quick`` only to keep it working.
+benchmark, never a test: ``tests/integration/test_bench.py`` runs ``--quick`` only to keep it
+working.
 
 Modules: :mod:`.core` (rows, timing, report), :mod:`.compute` (the pure core: fusion, SEVDS,
 matching), :mod:`.zbench` (through Zenoh and processes), :mod:`.procs` (helper processes),

@@ -13,10 +13,11 @@ WGS-84 latitude, longitude and ellipsoidal height (``pymap3d.enu2geodetic``; the
 the floor (``z = 0``) far from the datum lies *above* the ellipsoid (``d^2 / 2R``: 0.8 m at
 3.2 km) - that is where the plane really is, and it is what a GNSS receiver on that plane
 would report.  Tested against an independent ENU -> ECEF -> geodetic conversion within 1 mm
-up to 200 km from the datum at latitudes 0, 45, 70 and -33 deg (``tests/test_geodesy.py``).
+up to 200 km from the datum at latitudes 0, 45, 70 and -33 deg
+(``tests/unit/core/test_geodesy.py``).
 
-Earlier versions scaled latitude and longitude by first-order factors and kept the altitude
-constant; that drifted by 11 m at 10 km (9 m horizontally) at 45 deg latitude.
+First-order scale factors with a constant altitude would drift by 11 m at 10 km (9 m
+horizontally) at 45 deg latitude: the conversion is exact instead.
 
 Datums closer than 0.1 deg to a pole are refused: there the datum's east axis (which follows
 the datum longitude) turns by tens of degrees per metre of latitude - the map frame would be

@@ -18,7 +18,7 @@ Protocol (what a robot with a drifting pose estimate sends to the server):
    (``min_inliers = 4``, no score gates), so every acceptance rule over ``min_inliers``,
    ``min_score`` and ``min_gain`` is evaluated afterwards from the same trials
    (:meth:`Trial.accepted_by`): the matcher's steps before acceptance do not depend on them.
-   ``tests/test_eval_matching.py`` checks this against ``match_ism`` run with each gate.
+   ``tests/unit/eval/test_matching.py`` checks this against ``match_ism`` run with each gate.
 4. An accepted correction is **grossly wrong** when the corrected sensor pose is more than
    0.3 m or 5 deg from the log's corrected pose (the size of the perturbation itself).  A refused
    match keeps the claimed pose (the server fuses it as claimed, ``on_failure = "fuse"``).

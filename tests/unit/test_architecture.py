@@ -141,7 +141,7 @@ def test_no_module_above_450_lines() -> None:
 
 def test_no_reference_to_the_history_of_the_work() -> None:
     """Code and tests say what the code does, not which issue or session added it."""
-    pattern = re.compile(r"\bissues? #?\d+|\bDESIGN\.md\b")
+    pattern = re.compile(r"\bissues? #?\d+|\b[D]ESIGN\.md\b")  # [D]: no hit on this line
     hits = [f"{p.relative_to(ROOT)}:{i}" for folder in ("sogm_service", "tests")
             for p in (ROOT / folder).rglob("*.py")
             for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)
