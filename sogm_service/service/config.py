@@ -227,6 +227,10 @@ class Ros2Settings(_Section):
     node_name: Annotated[str, _doc("The ROS node name.")] = "sogm_service"
     publish_period_s: Annotated[float, _doc(
         "Maps are republished this often, when they changed (s).", "s", gt=0)] = 1.0
+    full_period_s: Annotated[float, _doc(
+        "Between whole OccupancyGrids only the changed rectangles go out (on "
+        "<topic>_updates); after updates a whole grid is sent again at most this long after "
+        "the last one (s; 0: only when the extent grows).", "s", ge=0)] = 30.0
     region: Annotated[Literal["robots", "known"], _doc(
         "The published region: around the robots, or the whole known map.")] = "robots"
     region_radius_m: Annotated[float, _doc(

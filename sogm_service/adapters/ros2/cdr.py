@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 from rosbags.typesys.store import Typestore
 
@@ -31,6 +31,7 @@ from sogm_service.adapters.ros2.keys import (
     GET_MAP,
     LASER_SCAN,
     OCCUPANCY_GRID,
+    OCCUPANCY_GRID_UPDATE,
     ODOMETRY,
     POSE_STAMPED,
     TF_MESSAGE,
@@ -44,6 +45,17 @@ DEFAULT_MAX_PAYLOAD = 128 * 1024 * 1024
 DEFAULT_MAX_CELLS = 4096 * 4096
 MAX_TRANSFORMS = 1024  # per TFMessage
 
+OCCUPANCY_GRID_UPDATE_MSG = """std_msgs/Header header
+int32 x
+int32 y
+uint32 width
+uint32 height
+int8[] data
+"""
+"""``map_msgs/msg/OccupancyGridUpdate``'s definition (rosbags' Jazzy store has no map_msgs):
+a rectangle of a grid, ``data`` row-major from cell ``(x, y)``, as nav2's static layer and
+RViz's Map display read it on ``<map topic>_updates``."""
+
 
 @lru_cache(maxsize=1)
 def typestore() -> Typestore:
@@ -54,6 +66,7 @@ def typestore() -> Typestore:
                                 (Nodetype.BASE, ("uint8", 0)))]),
         GET_MAP_RESPONSE: ([], [("map", (Nodetype.NAME, OCCUPANCY_GRID))]),
     })
+    ts.register(get_types_from_msg(OCCUPANCY_GRID_UPDATE_MSG, OCCUPANCY_GRID_UPDATE))
     return ts
 
 
@@ -74,6 +87,20 @@ class OccupancyGridFields:
     orientation: Quat
     data: npt.NDArray[np.int8] = field(repr=False)
     map_load_time: float = 0.0
+
+
+@dataclass(frozen=True)
+class GridUpdateFields:
+    """A map_msgs/msg/OccupancyGridUpdate, flat: the cells ``data`` (``(height, width)`` int8)
+    replace those of the grid from column ``x``, row ``y``."""
+
+    frame: str
+    stamp: float
+    x: int
+    y: int
+    width: int
+    height: int
+    data: npt.NDArray[np.int8] = field(repr=False)
 
 
 @dataclass(frozen=True)
@@ -199,6 +226,33 @@ def _grid_msg(g: OccupancyGridFields) -> Any:
 
 def encode_occupancy_grid(g: OccupancyGridFields) -> bytes:
     return _serialize(_grid_msg(g), OCCUPANCY_GRID)
+
+
+# -- map_msgs/msg/OccupancyGridUpdate -----------------------------------------------------
+def encode_grid_update(u: GridUpdateFields) -> bytes:
+    T = typestore().types
+    data = np.ascontiguousarray(u.data, dtype=np.int8).reshape(-1)
+    if data.size != u.width * u.height:
+        raise ValueError(f"data has {data.size} cells, {u.width}x{u.height} expected")
+    return _serialize(T[OCCUPANCY_GRID_UPDATE](
+        header=_header(u.frame, u.stamp), x=int(u.x), y=int(u.y), width=int(u.width),
+        height=int(u.height), data=data), OCCUPANCY_GRID_UPDATE)
+
+
+def decode_grid_update(payload: bytes | bytearray | memoryview, *,
+                       max_bytes: int = DEFAULT_MAX_PAYLOAD,
+                       max_cells: int = DEFAULT_MAX_CELLS) -> GridUpdateFields:
+    m = _deserialize(payload, OCCUPANCY_GRID_UPDATE, max_bytes)
+    width, height = int(m.width), int(m.height)
+    if width * height > max_cells:
+        raise Ros2DecodeError("too_large", f"{width}x{height} cells exceed the limit of "
+                                           f"{max_cells}")
+    data = np.asarray(m.data, dtype=np.int8)
+    if data.size != width * height:
+        raise Ros2DecodeError("data_length", f"data has {data.size} cells; {width}x{height} "
+                                             f"need {width * height}")
+    return GridUpdateFields(str(m.header.frame_id), _stamp(m.header.stamp), int(m.x), int(m.y),
+                            width, height, data.reshape(height, width))
 
 
 # -- poses ---------------------------------------------------------------------------------

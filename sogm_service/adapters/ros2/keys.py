@@ -34,6 +34,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 GET_MAP = "nav_msgs/srv/GetMap"
+OCCUPANCY_GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
 
 TYPE_HASHES: dict[str, str] = {
     OCCUPANCY_GRID: "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7",
@@ -42,6 +43,8 @@ TYPE_HASHES: dict[str, str] = {
     TF_MESSAGE: "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
     LASER_SCAN: "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924bd828",
     GET_MAP: "RIHS01_c8ae77c9995b3554b5ba80e4d4d443f970ac65143102a1d893ec24fc07b31147",
+    OCCUPANCY_GRID_UPDATE:
+        "RIHS01_c4095b0be2e4363f8978a1570e0293ee093436f1e1c61d99b48502ac317025e8",
 }
 """REP-2011 type hashes (identical in Jazzy, Kilted and Rolling for these types)."""
 

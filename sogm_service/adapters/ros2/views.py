@@ -3,9 +3,11 @@
 :func:`publish_region` chooses the window: around the robots (``robots``: the box of their
 positions plus ``radius_m``) or the whole known map (``known``), on the map's own cell lattice
 (so sampling at map resolution is exact), shrunk about its centre to at most ``max_cells``
-cells.  :func:`map_snapshot` samples every layer once in that window and fuses the chosen
-layers by Eq. 6 (``max`` by default: P_M, a cell is as occupied as its most occupied class).
-The caller holds the map lock around :func:`map_snapshot`.
+cells.  :func:`stable_extent` makes the published extent stable, as nav2 and RViz need it: it
+grows, in whole tiles, to hold each new window and never shrinks or moves, except when growing
+would pass ``max_cells`` and the window's centre has left it.  :func:`map_snapshot` samples
+every layer once in that window and fuses the chosen layers by Eq. 6 (``max`` by default:
+P_M, a cell is as occupied as its most occupied class).  The caller holds the map lock around :func:`map_snapshot`.
 """
 
 from __future__ import annotations
@@ -60,6 +62,55 @@ def publish_region(tiled: TiledMap, robots: Iterable[tuple[float, float]] = (), 
         v0 += (h - nh) // 2
         w, h = nw, nh
     return GridGeometry(res, w, h, Pose2D(u0 * res, v0 * res, 0.0))
+
+
+Cells = tuple[int, int, int, int]  # u0, v0, u1, v1 on the map's cell lattice
+
+
+def _cells(g: GridGeometry) -> Cells:
+    u0, v0 = round(g.origin.x / g.resolution), round(g.origin.y / g.resolution)
+    return u0, v0, u0 + g.width, v0 + g.height
+
+
+def _geometry(c: Cells, res: float) -> GridGeometry:
+    return GridGeometry(res, c[2] - c[0], c[3] - c[1], Pose2D(c[0] * res, c[1] * res, 0.0))
+
+
+def _round_out(c: Cells, step: int) -> Cells:
+    return (c[0] // step * step, c[1] // step * step, -(-c[2] // step) * step,
+            -(-c[3] // step) * step)
+
+
+def _area(c: Cells) -> int:
+    return (c[2] - c[0]) * (c[3] - c[1])
+
+
+def stable_extent(current: GridGeometry | None, needed: GridGeometry, *, step: int,
+                  max_cells: int) -> GridGeometry:
+    """The extent to publish, given the one published so far and the window needed now.
+
+    It stays ``current`` while that holds ``needed``; otherwise it grows to the union of both,
+    rounded out to ``step`` cells (the tile size: the origin stays on the tile lattice).  When
+    the union passes ``max_cells``, ``current`` stays while it still holds the centre of
+    ``needed``, and only then is the extent placed anew on ``needed`` (rounded out, if that
+    stays within ``max_cells``).  Every change of the result is a new grid for the subscribers.
+    """
+    res = needed.resolution
+    need = _cells(needed)
+    if current is not None and current.resolution == res:
+        cur = _cells(current)
+        if cur[0] <= need[0] and cur[1] <= need[1] and need[2] <= cur[2] and need[3] <= cur[3]:
+            return current
+        union = (min(cur[0], need[0]), min(cur[1], need[1]), max(cur[2], need[2]),
+                 max(cur[3], need[3]))
+        for c in (_round_out(union, step), union):
+            if _area(c) <= max_cells:
+                return _geometry(c, res)
+        cu, cv = (need[0] + need[2]) / 2, (need[1] + need[3]) / 2
+        if cur[0] <= cu < cur[2] and cur[1] <= cv < cur[3]:
+            return current
+    placed = _round_out(need, step)
+    return _geometry(placed if _area(placed) <= max_cells else need, res)
 
 
 def map_snapshot(tiled: TiledMap, window: GridGeometry, *, frame: str | None = None,

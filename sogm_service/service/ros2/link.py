@@ -4,7 +4,8 @@ The :class:`~sogm_service.service.ros2.bridge.Ros2Bridge` speaks rmw_zenoh (CDR,
 liveliness tokens); this part wires it to the server: an ``OccupancyGrid`` ISM goes into the
 same ingestion queue as a native one (and from there through the same pipeline, limits,
 counters and rejection reasons), poses drive the fleet tracker, and a thread republishes the
-map every ``publish_period_s`` (the bridge sends only grids that changed).  Imported only when
+map every ``publish_period_s`` over a stable extent (the bridge sends only what changed: whole
+grids or ``OccupancyGridUpdate`` rectangles).  Imported only when
 enabled: the ``ros2`` extra (rosbags, xxhash) is needed then and only then.
 """
 
@@ -17,7 +18,13 @@ from typing import Any
 
 import zenoh
 
-from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region
+from sogm_service.adapters.ros2.views import (
+    MapSnapshot,
+    map_snapshot,
+    publish_region,
+    stable_extent,
+)
+from sogm_service.core.geometry import GridGeometry
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.ros2.bridge import Ros2Bridge
@@ -39,7 +46,8 @@ def bridge_settings(config: ServiceConfig) -> Ros2BridgeSettings:
         tf_static_topics=tuple(r.tf_static_topics), map_frame=config.map.frame,
         robot_frame=r.robot_frame, humble=r.humble, topic_root=r.topic_root,
         node_name=r.node_name, max_payload_bytes=config.limits.max_payload_bytes,
-        max_cells=config.limits.max_ism_cells, max_tilt=r.max_tilt_rad)
+        max_cells=config.limits.max_ism_cells, max_tilt=r.max_tilt_rad,
+        full_period_s=r.full_period_s)
 
 
 class Ros2Link:
@@ -55,6 +63,7 @@ class Ros2Link:
         self.stats = stats
         self.rejections = rejections
         self._stop = threading.Event()
+        self.extent: GridGeometry | None = None  # the published extent: it only grows
         self.bridge = Ros2Bridge(session, map_name=config.map.name,
                                  settings=bridge_settings(config), on_ism=self._on_ism,
                                  on_pose=self._on_pose, on_reject=self._on_reject,
@@ -82,13 +91,18 @@ class Ros2Link:
             self.stats.count(f"ros2_{what}_rejected_{code}")
 
     def snapshot(self) -> MapSnapshot:
-        """The layers and the fused map over the publication region, sampled, pooled and
+        """The layers and the fused map over the published extent (the publication region
+        made stable by :func:`~sogm_service.adapters.ros2.views.stable_extent`: it grows in
+        whole tiles and never moves while it holds the region's centre), sampled, pooled and
         converted by :func:`~sogm_service.adapters.ros2.views.map_snapshot`."""
         r = self.config.ros2
         window = publish_region(self.tiled, self.fleet.positions(), mode=r.region,
                                 radius_m=r.region_radius_m, max_cells=r.max_publish_cells)
         if window is None:
             return MapSnapshot()
+        self.extent = window = stable_extent(self.extent, window,
+                                             step=self.tiled.lattice.tile_size,
+                                             max_cells=r.max_publish_cells)
         return map_snapshot(self.tiled, window, stamp=time.time(), layers=r.layers,
                             fused_layers=r.fused_layers, method=r.fused_method,
                             publish_layers=r.publish_layers)

@@ -1,11 +1,19 @@
 """What the ROS 2 bridge publishes (:class:`MapsOut`): each layer's grid and the fused grid on
-latched (TRANSIENT_LOCAL, depth 1) topics when they change, and the ``nav_msgs/srv/GetMap``
-service's replies.
+latched (TRANSIENT_LOCAL, depth 1) topics, their changes on ``<topic>_updates`` as
+``map_msgs/msg/OccupancyGridUpdate``, and the ``nav_msgs/srv/GetMap`` service's replies.
+
+A map topic's whole ``OccupancyGrid`` goes out on the first publication, when the grid's extent
+(size, origin, resolution or frame) changes, when the change would cost more than half of a
+whole grid, and ``full_period_s`` after the last whole grid if updates followed it (so a late
+subscriber, which gets only the latched grid and the latched last update, is behind for at most
+that long).  Otherwise only the rectangles that changed since the last publication go out
+(:func:`~sogm_service.adapters.ros2.updates.changed_rects`), one update each, on the same QoS.
+After a whole grid that follows updates, an empty update (0 x 0) replaces the latched one, so a
+late subscriber never gets an update older than the grid it writes it into.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import struct
 import time
@@ -21,15 +29,17 @@ from sogm_service.adapters.ros2.attachment import (
     gid_of,
     parse_attachment,
 )
-from sogm_service.adapters.ros2.cdr import OccupancyGridFields
+from sogm_service.adapters.ros2.cdr import GridUpdateFields, OccupancyGridFields
 from sogm_service.adapters.ros2.errors import Ros2DecodeError
 from sogm_service.adapters.ros2.keys import (
     OCCUPANCY_GRID,
+    OCCUPANCY_GRID_UPDATE,
     QOS_LATCHED,
     EntityKind,
     ros_safe_name,
     topic_key,
 )
+from sogm_service.adapters.ros2.updates import changed_rects, grid_update
 from sogm_service.service.ros2.state import BridgeState, Publisher
 
 log = logging.getLogger("sogm_service.service.ros2.bridge")  # one logger for the bridge's parts
@@ -39,18 +49,17 @@ HEARTBEAT_PERIOD_S = 1.0
 sequencing, so no Zenoh ``timestamping`` is needed) for subscribers to recover a missed last
 sample from the cache."""
 
+UPDATES_SUFFIX = "_updates"
+MAX_UPDATE_SHARE = 0.5  # updates covering more than this share of the grid: the whole grid
+
 
 def _now_ns() -> int:
     return time.time_ns()
 
 
-def _digest(g: OccupancyGridFields) -> bytes:
-    """What makes a grid "changed": cells, geometry and frame (not the stamp)."""
-    h = hashlib.blake2b(digest_size=16)
-    h.update(repr((g.frame, g.resolution, g.width, g.height, g.position,
-                   g.orientation)).encode())
-    h.update(g.data.tobytes())
-    return h.digest()
+def _same_extent(a: OccupancyGridFields, b: OccupancyGridFields) -> bool:
+    return (a.frame, a.resolution, a.width, a.height, a.position, a.orientation) == \
+        (b.frame, b.resolution, b.width, b.height, b.position, b.orientation)
 
 
 class MapsOut(BridgeState):
@@ -60,13 +69,14 @@ class MapsOut(BridgeState):
     def layer_topic(self, layer: str) -> str:
         return f"{self.base_topic}/layers/{ros_safe_name(layer)}"
 
-    def _publisher(self, topic: str) -> Publisher:
+    def _publisher(self, topic: str, ros_type: str = OCCUPANCY_GRID) -> Publisher:
+        slot = topic if ros_type == OCCUPANCY_GRID else f"{topic} {ros_type}"
         with self._lock:
-            pub = self._publishers.get(topic)
+            pub = self._publishers.get(slot)
             if pub is not None:
                 return pub
             s = self.settings
-            key = topic_key(s.domain, topic, OCCUPANCY_GRID)
+            key = topic_key(s.domain, topic, ros_type)
             publisher = zenoh.ext.declare_advanced_publisher(
                 self.session, key, cache=zenoh.ext.CacheConfig(max_samples=QOS_LATCHED.depth),
                 publisher_detection=True,
@@ -74,31 +84,57 @@ class MapsOut(BridgeState):
                     heartbeat=None, sporadic_heartbeat=HEARTBEAT_PERIOD_S),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE)
-            token_key = self._entity_token(EntityKind.PUBLISHER, topic, OCCUPANCY_GRID,
-                                           QOS_LATCHED)
+            token_key = self._entity_token(EntityKind.PUBLISHER, topic, ros_type, QOS_LATCHED)
             pub = Publisher(topic, key, publisher, self._tokens[token_key], gid_of(token_key))
-            self._publishers[topic] = pub
+            self._publishers[slot] = pub
             return pub
+
+    def _put(self, pub: Publisher, payload: bytes, counter: str) -> None:
+        pub.seq += 1
+        pub.publisher.put(payload, attachment=encode_attachment(pub.seq, _now_ns(), pub.gid))
+        self._count(counter)
+        self._count(counter + "_bytes", len(payload))
+
+    def _put_update(self, topic: str, u: GridUpdateFields) -> None:
+        pub = self._publisher(topic + UPDATES_SUFFIX, OCCUPANCY_GRID_UPDATE)
+        self._put(pub, cdr.encode_grid_update(u), "updates_published")
 
     def publish_grid(self, topic: str, grid: OccupancyGridFields, *,
                      force: bool = False) -> bool:
-        """Publish ``grid`` on ``topic`` unless it equals the last one there (or ``force``)."""
-        digest = _digest(grid)
+        """Publish what changed of ``grid`` on ``topic``: nothing when it equals the last grid
+        sent there (unless ``force``), the whole grid or the changed rectangles on
+        ``<topic>_updates``.  True when anything was sent."""
+        period = self.settings.full_period_s
+        now = time.monotonic()
         with self._lock:
             if self._closed:
                 return False
             pub = self._publisher(topic)
-            if digest == pub.digest and not force:
-                return False
-            payload = cdr.encode_occupancy_grid(grid)
-            pub.seq += 1
-            pub.publisher.put(payload, attachment=encode_attachment(pub.seq, _now_ns(), pub.gid))
-            pub.digest = digest
-        self._count("grids_published")
+            last = pub.last
+            whole = force or last is None or not _same_extent(last, grid)
+            rects = []
+            if not whole and last is not None:
+                rects = changed_rects(last.data, grid.data)
+                due = period > 0 and pub.updates_since_full > 0 and now - pub.full_at >= period
+                if not rects and not due:
+                    return False
+                whole = due or sum(r.cells for r in rects) > MAX_UPDATE_SHARE * grid.data.size
+            if whole:
+                self._put(pub, cdr.encode_occupancy_grid(grid), "grids_published")
+                if pub.updates_since_full:  # the latched update must not predate this grid
+                    self._put_update(topic, GridUpdateFields(
+                        grid.frame, grid.stamp, 0, 0, 0, 0, np.zeros((0, 0), np.int8)))
+                pub.full_at, pub.updates_since_full = now, 0
+            else:
+                for r in rects:
+                    self._put_update(topic, grid_update(grid, r))
+                pub.updates_since_full += len(rects)
+            pub.last = grid
         return True
 
     def publish_maps(self) -> int:
-        """Ask ``map_source`` and publish what changed; returns how many grids were sent."""
+        """Ask ``map_source`` and publish what changed; returns how many grids changed (each
+        sent whole or as updates)."""
         if self._map_source is None:
             return 0
         snap = self._map_source()

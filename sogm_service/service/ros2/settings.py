@@ -39,4 +39,5 @@ class Ros2BridgeSettings:
     max_cells: int = MAX_ISM_CELLS
     max_tilt: float = DEFAULT_MAX_TILT
     max_topics: int = 4096
+    full_period_s: float = 30.0  # a whole grid at least this often after updates; 0: never
     max_frames: int = 1024

@@ -46,8 +46,9 @@ log = logging.getLogger("sogm_service.service.ros2.bridge")  # one logger for th
 
 @dataclass
 class Publisher:
-    """One map topic's advanced publisher, its token and gid, its sequence number and the
-    digest of the last grid sent."""
+    """One topic's advanced publisher, its token and gid, its sequence number; for a map topic
+    the last grid sent (what its subscribers hold), when the last whole grid went out and how
+    many updates followed it."""
 
     topic: str
     key: str
@@ -55,7 +56,9 @@ class Publisher:
     token: Any
     gid: bytes
     seq: int = 0
-    digest: bytes = b""
+    last: OccupancyGridFields | None = None
+    full_at: float = 0.0  # time.monotonic() of the last whole grid
+    updates_since_full: int = 0
 
 
 class BridgeState:
