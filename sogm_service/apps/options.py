@@ -148,6 +148,9 @@ def connection_args(p: argparse.ArgumentParser, timeout: str | None = None) -> N
                    help=timeout or "query timeout in seconds (default 5, supercells 90: the "
                                    "first query after an install may wait for the server to "
                                    "compile its kernels)")
+    g.add_argument("--compression", choices=["zstd", "none"], default="zstd",
+                   help="zstd: ISMs sent and replies asked for compressed (10-70x fewer "
+                        "bytes on the network); none: raw, for servers before schema version 3")
     zenoh_config_arg(g)
 
 

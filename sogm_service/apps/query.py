@@ -122,6 +122,7 @@ def open_client(args: argparse.Namespace) -> Any:
                                zenoh_config=args.zenoh_config)
     if args.timeout:
         client.supercells_timeout = args.timeout
+    client.compression = None if args.compression == "none" else "zstd"
     return client
 
 

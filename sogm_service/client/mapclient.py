@@ -35,6 +35,8 @@ from sogm_service.client.session import (
 )
 from sogm_service.core.geometry import Pose2D
 from sogm_service.wire import codec, encodings
+from sogm_service.wire import compression as zstd
+from sogm_service.wire.compression import Compression
 from sogm_service.wire.errors import (
     ConnectError,
     IsmNotFusedError,
@@ -43,7 +45,7 @@ from sogm_service.wire.errors import (
     SessionOpenError,
 )
 from sogm_service.wire.keys import MapKeys, last_chunk, pose_key, tile_of_key
-from sogm_service.wire.limits import SUPERCELLS_TIMEOUT_S
+from sogm_service.wire.limits import MAX_REPLY_BYTES, SUPERCELLS_TIMEOUT_S
 from sogm_service.wire.messages import (
     FusedReply,
     GeodeticFix,
@@ -83,6 +85,10 @@ class MapClient:
         self._id_prefix = secrets.token_hex(6)  # ISM ids: <prefix>-<n>, unique per client
         self._ids = itertools.count(1)
         self._pending: dict[str, str] = {}  # ISM id -> key, until wait_fused hears back
+        # zstd for ISMs sent and window replies asked (grids compress 10-70x on thin links);
+        # None: raw, for servers older than schema version 3.
+        self.compression: Compression | None = zstd.ZSTD
+        self.max_reply_bytes = MAX_REPLY_BYTES  # a compressed reply may expand to this much
 
     @classmethod
     def connect(cls, endpoint: str | None = None, map_name: str = "default",
@@ -144,7 +150,10 @@ class MapClient:
         budget = timeout or self.timeout
         for reply in self.session.get(selector, timeout=budget):
             if reply.ok is not None:
-                return reply.ok.payload.to_bytes()
+                payload = reply.ok.payload.to_bytes()
+                if str(reply.ok.encoding).endswith(";" + encodings.ZSTD_SCHEMA):
+                    return zstd.decompress_at_most(payload, self.max_reply_bytes)
+                return payload
             if reply.err is not None:
                 payload = reply.err.payload.to_bytes()
                 if payload == b"Timeout":  # Zenoh's own: the queryable did not answer in time
@@ -162,7 +171,8 @@ class MapClient:
                encoding: str = "prob_f32") -> GridResult:
         """The chosen layers (default all) resampled into a window centred on ``(x, y)``."""
         params = dict(x=x, y=y, yaw=yaw, width=width, height=height, resolution=resolution,
-                      layers=layers, interp=interp, encoding=encoding)
+                      layers=layers, interp=interp, encoding=encoding,
+                      compression=self.compression)
         return grid_result(self._get(GridReply, "submap", params))
 
     def fused(self, *, method: str = "bayes", x: float = 0.0, y: float = 0.0, yaw: float = 0.0,
@@ -171,7 +181,8 @@ class MapClient:
               encoding: str = "prob_f32") -> GridResult:
         """Eq. 6 over the chosen layers: ``bayes`` (P_B) or ``max`` (P_M)."""
         params = dict(method=method, x=x, y=y, yaw=yaw, width=width, height=height,
-                      resolution=resolution, layers=layers, interp=interp, encoding=encoding)
+                      resolution=resolution, layers=layers, interp=interp, encoding=encoding,
+                      compression=self.compression)
         return grid_result(self._get(FusedReply, "fused", params))
 
     def supercells(self, timeout: float | None = None, **params: Any) -> SupercellReply:
@@ -181,6 +192,7 @@ class MapClient:
         that is still compiling its kernels (the first start after an install) answers
         ``warming_up`` and is asked again."""
         deadline = time.monotonic() + (timeout or self.supercells_timeout)
+        params.setdefault("compression", self.compression)
         while True:
             remaining = deadline - time.monotonic()
             try:
@@ -267,7 +279,8 @@ class MapClient:
                         layer=layer, frame=frame, stamp=stamp, robot=robot)
         ism_id = f"{self._id_prefix}-{next(self._ids)}"
         self._pending[ism_id] = key
-        self._publisher(key).put(codec.encode(msg), attachment=ism_id.encode("ascii"))
+        sent = msg if self.compression is None else msg.compressed()
+        self._publisher(key).put(codec.encode(sent), attachment=ism_id.encode("ascii"))
         if wait:
             self.wait_fused([ism_id], timeout)
         return msg

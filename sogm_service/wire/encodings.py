@@ -7,6 +7,8 @@ tell what it holds (without them every payload is ``zenoh/bytes``).
 - :data:`TILE`: a whole tile in the store's file format (:mod:`sogm_service.store.format`:
   magic, version, a JSON header with its CRC-32, then zlib of the raw ``<i2`` layers), as
   ``sogm/<map>/tiles/<i>/<j>`` answers it.
+- either, compressed when the asker wants it (``compression=zstd``): the same bytes as one zstd
+  frame, with the schema :data:`ZSTD_SCHEMA` (``application/msgpack;zstd``).
 
 ROS 2 samples (rmw_zenoh's CDR) keep rmw_zenoh's own convention: no encoding is set, as ROS 2
 nodes themselves send them.
@@ -19,3 +21,7 @@ MSGPACK = "application/msgpack"
 
 TILE = "application/x-sogm-tile"
 """A tile file of the store's format (private subtype: no registered type exists for it)."""
+
+ZSTD_SCHEMA = "zstd"
+"""The schema suffix of a payload sent as one zstd frame (``application/msgpack;zstd``): a
+client that asked for ``compression=zstd`` decompresses what declares it."""

@@ -16,6 +16,7 @@ DECODE_CODES: Final[dict[str, str]] = {
     "missing_field": "a required field is missing",
     "wrong_type": "a field has the wrong type",
     "data_length": "the data length does not match width x height x encoding",
+    "bad_compression": "compressed data is not one zstd frame declaring its size",
     "non_finite": "a number is NaN or infinite",
     "non_positive_resolution": "the resolution is not positive",
     "out_of_range": "a probability or occupancy value is out of range",

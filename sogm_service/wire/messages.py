@@ -27,12 +27,16 @@ from sogm_service.core.logodds import ENCODING_DTYPES, Encoding
 from sogm_service.core.resample import Interp
 from sogm_service.core.sevds.segment import BOUNDS as _SEVDS_BOUNDS
 from sogm_service.core.sevds.segment import Criterion, SevdsParams
+from sogm_service.wire import compression as zstd
+from sogm_service.wire.compression import Compression
+from sogm_service.wire.errors import DecodeError
 from sogm_service.wire.limits import MAX_ISM_CELLS
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Version of the wire schemas (``x-sogm-schema-version`` in ``schemas/*.json``).  Version 2
-added the ``prob_u8_v2`` encoding and NaN as "unknown" in ``prob_f32``; every version-1
-message is a valid version-2 message with the same meaning."""
+added the ``prob_u8_v2`` encoding and NaN as "unknown" in ``prob_f32``; version 3 added
+``compression`` to ISMs (zstd ``data``).  Every older message is a valid message of the newer
+versions with the same meaning."""
 
 IsmEncoding = Literal["occupancy_i8", "prob_u8", "prob_f32", "prob_u8_v2"]
 OutputEncoding = Literal["prob_u8", "prob_f32", "logodds_i16", "occupancy_i8", "prob_u8_v2"]
@@ -44,6 +48,11 @@ ENCODING_DESCRIPTION = (
     "(127 is exactly 0.5), 255 = unknown; both 127 and 255 leave a cell untouched. "
     "prob_f32: p in [0, 1], NaN = unknown (no update; rejected before schema version 2). "
     "logodds_i16 (replies only): log-odds in units of 1/1000 nat.")
+COMPRESSION_DESCRIPTION = (
+    "Compression of data (added in schema version 3). Absent or null: raw cells. zstd: one zstd "
+    "frame that declares its decompressed size, which must be exactly width x height x the "
+    "encoding's cell size (refused as data_length otherwise, bad_compression when it is not one "
+    "such frame); the server prices the ISM from its header before decompressing.")
 FusionMethod = Literal["bayes", "max"]
 
 StrictInt = Annotated[int, Strict()]
@@ -127,6 +136,7 @@ class IsmMessage(WireModel):
     height: StrictInt
     encoding: Annotated[IsmEncoding, Field(description=ENCODING_DESCRIPTION)]
     data: StrictBytes
+    compression: Annotated[Compression | None, Field(description=COMPRESSION_DESCRIPTION)] = None
 
     @field_validator("resolution")
     @classmethod
@@ -155,6 +165,8 @@ class IsmMessage(WireModel):
             raise PydanticCustomError("too_large", "{cells} cells exceed the limit of {limit}",
                                       {"cells": cells, "limit": max_cells})
         itemsize = ENCODING_DTYPES[Encoding(self.encoding)].itemsize
+        if self.compression is not None:
+            self._decompress(cells * itemsize)
         if len(self.data) != cells * itemsize:
             raise PydanticCustomError(
                 "data_length",
@@ -163,6 +175,24 @@ class IsmMessage(WireModel):
                  "enc": self.encoding, "expected": cells * itemsize})
         _check_cell_values(self.array(), self.encoding)
         return self
+
+    def _decompress(self, expected: int) -> None:
+        """Replace zstd ``data`` by the raw cells: only a frame that declares exactly the size
+        the header implies is decompressed (priced before any work); the message then reads as
+        the uncompressed ISM it stands for."""
+        try:
+            raw = zstd.decompress(self.data, expected)
+        except DecodeError as exc:
+            raise PydanticCustomError(exc.code, exc.message) from None
+        object.__setattr__(self, "data", raw)  # frozen model: the validated, expanded cells
+        object.__setattr__(self, "compression", None)
+
+    def compressed(self) -> IsmMessage:
+        """The same ISM with zstd ``data`` (what robots send over thin links)."""
+        if self.compression is not None:
+            return self
+        return self.model_copy(update={"data": zstd.compress(self.data),
+                                       "compression": zstd.ZSTD})
 
     def array(self) -> npt.NDArray:
         """The cells as a ``(height, width)`` array of the encoding's dtype (read-only view)."""
@@ -218,6 +248,9 @@ class WindowRequest(BaseModel):
     layers: list[str] | None = None
     interp: Interp = "biodds"
     encoding: OutputEncoding = "prob_u8"
+    compression: Annotated[Compression | None, Field(description=(
+        "Compress the reply: zstd sends the msgpack reply as one zstd frame, declared as the "
+        "Zenoh encoding application/msgpack;zstd (error replies are never compressed)."))] = None
 
     @field_validator("layers", mode="before")
     @classmethod
@@ -419,8 +452,32 @@ class IsmAck(WireModel):
     stamp: float = 0.0
 
 
+TileVersion = Annotated[int, Field(ge=0, lt=1 << 63)]
+
+
+class TilesChangedRequest(BaseModel):
+    """``tiles/changed``: the tiles of a region whose version differs from the one held.
+
+    The region is a box of the map frame (``x``, ``y`` its centre, ``width``, ``height`` in m)
+    or tile index bounds (``i0``..``i1``, ``j0``..``j1``, inclusive); ``held`` the versions the
+    client holds, ``{"i,j": version}`` or ``[[i, j, version], ...]``.  Lax (selector strings)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+    schema_name: ClassVar[str] = "tiles_changed_request"
+
+    x: float = 0.0
+    y: float = 0.0
+    width: Annotated[float, Field(gt=0)] | None = None
+    height: Annotated[float, Field(gt=0)] | None = None
+    i0: int | None = None
+    j0: int | None = None
+    i1: int | None = None
+    j1: int | None = None
+    held: dict[str, TileVersion] | list[tuple[int, int, TileVersion]] = {}
+
+
 SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
     IsmMessage, PoseMessage, SubmapRequest, FusedRequest, SupercellRequest, GridReply,
     FusedReply, SupercellReply, TileEvent, RobotTilesReply, MatchReport, InfoReply, StatsReply,
-    ErrorReply, RejectionReport, IsmAck,
+    ErrorReply, RejectionReport, IsmAck, TilesChangedRequest,
 )

@@ -9,15 +9,20 @@ code, a sentence, and the offending parameter.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import BaseModel
 
 from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, window_geometry
 from sogm_service.core.map.tiles import TiledMap
+from sogm_service.wire import codec
+from sogm_service.wire import compression as zstd
 from sogm_service.wire.codec import unpack, validate
+from sogm_service.wire.compression import Compression
 from sogm_service.wire.errors import DecodeError, QueryError
 from sogm_service.wire.messages import (
     FusedReply,
@@ -165,3 +170,20 @@ def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry, lay
     labels = WireArray.from_array(graph.labels) if req.labels else None
     return SupercellReply(**_placement(tiled, window, layers, stamp), nodes=nodes,
                           labels=labels)
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A reply and the compression its asker wants (``compression=zstd``)."""
+
+    compression: Compression | None
+    model: BaseModel
+
+    @property
+    def compressed(self) -> bool:
+        return self.compression is not None
+
+    def payload(self) -> bytes:
+        """The msgpack reply, as one zstd frame when asked."""
+        raw = codec.encode(self.model)
+        return raw if self.compression is None else zstd.compress(raw)

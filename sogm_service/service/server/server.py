@@ -65,11 +65,13 @@ from sogm_service.wire.messages import (
 
 log = logging.getLogger(__name__)
 
-Handler = Callable[[zenoh.Query], BaseModel | bytes | None]
+Handler = Callable[[zenoh.Query], queries.Answer | BaseModel | bytes | None]
 
 
 MSGPACK = zenoh.Encoding(encodings.MSGPACK)
 """Every reply, error reply, event and report the server sends is a msgpack wire model."""
+MSGPACK_ZSTD = MSGPACK.with_schema(encodings.ZSTD_SCHEMA)
+"""A reply compressed for an asker that wanted it: the msgpack bytes as one zstd frame."""
 
 
 class MapServer:
@@ -264,7 +266,11 @@ class MapServer:
             self.stats.count(f"queries_{name}")
             try:
                 result = handler(q)
-                if result is not None:
+                if isinstance(result, queries.Answer):
+                    self.stats.count("replies_zstd" if result.compressed else "replies_raw")
+                    q.reply(q.key_expr, result.payload(),
+                            encoding=MSGPACK_ZSTD if result.compressed else MSGPACK)
+                elif result is not None:
                     payload = result if isinstance(result, bytes) else codec.encode(result)
                     q.reply(q.key_expr, payload, encoding=MSGPACK)
             except SogmError as exc:
@@ -287,23 +293,24 @@ class MapServer:
         pairs: list[tuple[str, str]] = list(q.selector.parameters)  # type: ignore[call-overload]
         return dict(pairs), body
 
-    def _on_submap(self, q: zenoh.Query) -> BaseModel:
+    def _on_submap(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(SubmapRequest, *self.params(q))
-        return queries.submap(self.query_map(), req, time.time(),
-                              admission=self.pipeline.admission)
+        return queries.Answer(req.compression, queries.submap(self.query_map(), req, time.time(),
+                                                              admission=self.pipeline.admission))
 
-    def _on_fused(self, q: zenoh.Query) -> BaseModel:
+    def _on_fused(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(FusedRequest, *self.params(q))
-        return queries.fused(self.query_map(), req, time.time(),
-                             admission=self.pipeline.admission)
+        return queries.Answer(req.compression, queries.fused(self.query_map(), req, time.time(),
+                                                             admission=self.pipeline.admission))
 
-    def _on_supercells(self, q: zenoh.Query) -> BaseModel:
+    def _on_supercells(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(SupercellRequest, *self.params(q))
         self.wait_warm(WARMUP_WAIT_S)
         with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
             window, layers, stack = queries.supercell_input(
                 self.query_map(), req, admission=self.pipeline.admission)
-            return queries.supercells(self.map, req, window, layers, stack, time.time())
+            graph = queries.supercells(self.map, req, window, layers, stack, time.time())
+        return queries.Answer(req.compression, graph)
 
     def info(self) -> InfoReply:
         tiled = self.map

@@ -45,6 +45,8 @@ def test_ism_schema_documents_the_required_fields() -> None:
     assert set(schema["required"]) == {"resolution", "width", "height", "encoding", "data"}
     assert set(schema["properties"]["encoding"]["enum"]) == {
         "occupancy_i8", "prob_u8", "prob_f32", "prob_u8_v2"}
-    # Versioned: prob_u8_v2 and NaN-as-unknown came with schema version 2 (documented there).
-    assert schema["x-sogm-schema-version"] == 2
+    # Versioned: prob_u8_v2 and NaN-as-unknown came with schema version 2, zstd data with 3
+    # (documented there).
+    assert schema["x-sogm-schema-version"] == 3
     assert "255 = unknown" in schema["properties"]["encoding"]["description"]
+    assert "schema version 3" in schema["properties"]["compression"]["description"]
