@@ -192,6 +192,8 @@ class LimitSettings(_Section):
                                    ] = limits.MAX_SUPERCELL_CELLS
     max_heavy_queries: Annotated[int, _limit("limits.max_heavy_queries", gt=0)
                                  ] = limits.MAX_HEAVY_QUERIES
+    max_region_tiles: Annotated[int, _limit("limits.max_region_tiles", gt=0)
+                                ] = limits.MAX_REGION_TILES
     busy_retry_s: Annotated[float, _limit("limits.busy_retry_s", gt=0)] = limits.BUSY_RETRY_S
     log_text_chars: Annotated[int, _limit("limits.log_text_chars", ge=16)
                               ] = limits.LOG_TEXT_CHARS

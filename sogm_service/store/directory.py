@@ -161,9 +161,9 @@ class DirectoryStore:
 
     def header_for(self, i: int, j: int, layers: Sequence[str],
                    stamp: float, decay: dict[str, float] | None = None,
-                   applied: dict[str, Mark] | None = None) -> TileHeader:
+                   applied: dict[str, Mark] | None = None, version: int = 0) -> TileHeader:
         """The header this store writes for tile ``(i, j)``."""
-        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay, applied)
+        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay, applied, version)
 
     # -- index ----------------------------------------------------------------------------
     def index(self) -> dict[TileIndex, TileFileInfo]:
@@ -251,11 +251,11 @@ class DirectoryStore:
     # -- writing --------------------------------------------------------------------------
     def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
               stamp: float, decay: dict[str, float] | None = None,
-              applied: dict[str, Mark] | None = None) -> TileFileInfo:
+              applied: dict[str, Mark] | None = None, version: int = 0) -> TileFileInfo:
         """Encode and atomically write one tile (synchronous; :class:`TileWriter` runs this).
         ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.map.forget`); ``applied``:
-        the tile's marks (``Tile.applied``)."""
-        header = self.header_for(i, j, layers, stamp, decay, applied)
+        the tile's marks (``Tile.applied``); ``version``: the tile's (``Tile.version``)."""
+        header = self.header_for(i, j, layers, stamp, decay, applied, version)
         return self._write_blob(header, tile_to_bytes(header, data, self.level))
 
     def write_bytes(self, blob: bytes) -> TileFileInfo:

@@ -55,7 +55,7 @@ class TileStore(Protocol):
 
     def header_for(self, i: int, j: int, layers: Sequence[str], stamp: float,
                    decay: dict[str, float] | None = None,
-                   applied: dict[str, Mark] | None = None) -> TileHeader:
+                   applied: dict[str, Mark] | None = None, version: int = 0) -> TileHeader:
         """The header this store writes for tile ``(i, j)`` (map, frame, datum, ...)."""
         ...
 
@@ -73,9 +73,9 @@ class TileStore(Protocol):
 
     def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
               stamp: float, decay: dict[str, float] | None = None,
-              applied: dict[str, Mark] | None = None) -> TileFileInfo:
-        """Encode and atomically store one tile (with its decay stamps and applied marks, which
-        :meth:`loader` gives back)."""
+              applied: dict[str, Mark] | None = None, version: int = 0) -> TileFileInfo:
+        """Encode and atomically store one tile (with its decay stamps, applied marks and
+        version, which :meth:`loader` gives back)."""
         ...
 
     def close(self) -> None:

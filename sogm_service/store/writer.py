@@ -109,6 +109,9 @@ class TileWriter:
             if job is None and self._busy is not None and self._busy.index == (i, j):
                 job = self._busy
         if job is not None:
+            if isinstance(job.token, int) and job.token > 0:  # the tile's version
+                return (list(job.layers), job.data.copy(), job.stamp, dict(job.decay or {}),
+                        dict(job.applied or {}), job.token)
             if job.applied:
                 return (list(job.layers), job.data.copy(), job.stamp, dict(job.decay or {}),
                         dict(job.applied))
@@ -150,7 +153,8 @@ class TileWriter:
         t0 = time.perf_counter()
         try:
             info = self.store.write(job.index[0], job.index[1], job.layers, job.data, job.stamp,
-                                    job.decay or None, job.applied or None)
+                                    job.decay or None, job.applied or None,
+                                    job.token if isinstance(job.token, int) else 0)
         except Exception as exc:  # disk full, permissions: report, never kill the thread
             self.stats.errors += 1
             self.stats.last_error = f"tile {job.index}: {exc}"

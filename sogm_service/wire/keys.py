@@ -2,11 +2,11 @@
 docs/architecture.md#5-the-wire).
 
 Under ``<prefix>/<map>/`` (default ``sogm/default/``) a server declares its queryables
-(:data:`QUERYABLES`), ``tiles/<i>/<j>``, ``robots``, the tile-event publisher ``events/tile``,
-scan-matching reports ``matching/<ISM key>`` and its liveliness token ``@server/<id>``.  ISMs
-and poses arrive on their own key expressions (``ism/**``, ``pose/**`` by default): the layer is
-the remainder of an ISM key after the expression's literal prefix, the robot the last chunk of a
-pose key.
+(:data:`QUERYABLES`), ``tiles/<i>/<j>``, ``tiles/changed``, ``robots``, the tile-event publisher
+``events/tile``, scan-matching reports ``matching/<ISM key>`` and its liveliness token
+``@server/<id>``.  ISMs and poses arrive on their own key expressions (``ism/**``, ``pose/**`` by
+default): the layer is the remainder of an ISM key after the expression's literal prefix, the
+robot the last chunk of a pose key.
 """
 
 from __future__ import annotations
@@ -40,6 +40,12 @@ class MapKeys:
     @property
     def all_tiles(self) -> str:
         return self.key("tiles", "**")
+
+    @property
+    def tiles_changed(self) -> str:
+        """The queryable that answers the tiles of a region changed since the versions a
+        client holds (one reply per tile, keyed :meth:`tile`; ask with replies of any key)."""
+        return self.key("tiles", "changed")
 
     @property
     def tile_events(self) -> str:

@@ -111,6 +111,10 @@ evicted (their copies would pile up) and, while the resident tiles are over the 
 ISMs that could add tiles are refused with ``memory_budget``: memory stays within the budget
 plus this queue plus a fixed overhead whatever the disk's speed."""
 
+MAX_REGION_TILES: Final = 1024
+"""Most tiles one ``tiles/changed`` query's region may span, and most versions it may say it
+holds (``window_too_large``)."""
+
 MEMORY_BUDGET_MB: Final = 1024.0
 """Resident tiles, at most (MB): with a store the least recently used are evicted, without one
 an ISM that could grow them past it is refused (``memory_budget``)."""
@@ -198,6 +202,11 @@ LIMITS: Final[dict[str, Limit]] = {
     "limits.max_supercell_cells": Limit(
         MAX_SUPERCELL_CELLS, "cells", "The window one supercells query segments (SEVDS is the "
         "heaviest query).", "window_too_large", ("query_errors_window_too_large",)),
+    "limits.max_region_tiles": Limit(
+        MAX_REGION_TILES, "tiles", "Tiles one tiles/changed query's region spans, counted from "
+        "its bounds before any tile is read, and versions it may say it holds; every tile "
+        "that changed goes back whole, so this also bounds its replies.", "window_too_large",
+        ("query_errors_window_too_large",)),
     "limits.max_heavy_queries": Limit(
         MAX_HEAVY_QUERIES, "queries", "Heavy queries (supercells) running at once; one more is "
         "answered busy with a retry hint (busy_retry_s).", "busy",

@@ -190,11 +190,13 @@ class Fusing(MapState):
                     plane = self._plane(tile, lid, target.fresh)
                     target.fresh = None
                     half_life = self.half_life(lid)
+                    decay_at = tile.decay.get(lid)
                     age = 1.0 if half_life is None else forget.before_write(
                         tile, lid, half_life, stamp, first, work)
                     added = patch if age == 1.0 else forget.aged(patch, age, work)
                     logodds.bayes_update(plane[v0:v0 + h, u0:u0 + w], added, self.limits)
-                    tile.version = self.tick()
+                    if informative(added) or (not first and tile.decay.get(lid) != decay_at):
+                        tile.version = self.tick()  # the content changed (tile.py: versions)
                     tile.stamp = max(tile.stamp, stamp)
                     if mark is not None:
                         tile.applied[mark[0]] = mark[1]

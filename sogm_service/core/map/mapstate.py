@@ -10,7 +10,6 @@ build on this class.  Pure (numpy only, no I/O).
 
 from __future__ import annotations
 
-import itertools
 import math
 import threading
 import time
@@ -31,7 +30,8 @@ class MapState:
     nor read (:class:`~sogm_service.core.map.tiles.TiledMap` adds those)."""
 
     def __init__(self, name: str, frame: str, lattice: TileLattice,
-                 eps0: float = logodds.DEFAULT_EPS0, loader: Loader | None = None) -> None:
+                 eps0: float = logodds.DEFAULT_EPS0, loader: Loader | None = None,
+                 first_version: int | None = None) -> None:
         self.name = name
         self.frame = frame
         self.lattice = lattice
@@ -46,8 +46,11 @@ class MapState:
         self._bytes_lock = threading.Lock()
         self._resident_bytes = 0
         # Versions come from one map-wide clock, never per tile: a tile evicted and loaded
-        # back must not reuse version numbers that an in-flight save may still confirm.
-        self._clock = itertools.count(1)
+        # back must not reuse version numbers that an in-flight save may still confirm.  It
+        # starts at the wall clock in microseconds, so a restarted server (with or without a
+        # store) never hands out a number an earlier run gave other content (tile.py: versions).
+        self._clock = time.time_ns() // 1000 if first_version is None else int(first_version)
+        self._clock_lock = threading.Lock()
         self._forget = forget.ForgetRules()
         self._half_lives: dict[int, float | None] = {}
         self._time = -math.inf  # the map's clock: the latest stamp fused or loaded
@@ -55,7 +58,18 @@ class MapState:
 
     def tick(self) -> int:
         """The next version number (strictly increasing over the map's lifetime)."""
-        return next(self._clock)
+        with self._clock_lock:
+            self._clock += 1
+            return self._clock
+
+    def _keep_version(self, version: int) -> int:
+        """A loaded tile's own version (0: it has none, a new one): the clock moves past it, so
+        the tile's next change gets a greater number."""
+        if version <= 0:
+            return self.tick()
+        with self._clock_lock:
+            self._clock = max(self._clock, version)
+        return version
 
     # -- layers ---------------------------------------------------------------------------
     def layer_id(self, layer: str, create: bool = False) -> int:
@@ -120,7 +134,7 @@ class MapState:
             self.stored.discard(index)
             return None
         names, stack, stamp = loaded[0], loaded[1], loaded[2]
-        version = self.tick()
+        version = self._keep_version(loaded[5] if len(loaded) > 5 else 0)
         tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
                     saved_version=version)
         self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)

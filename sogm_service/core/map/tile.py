@@ -2,6 +2,24 @@
 map that owns them): a tile's planes and bookkeeping, a consistent snapshot of it, which tiles a
 fuse may write, and the plane set of a stored stack.
 
+**Versions** (``Tile.version``): one number per state of a tile's content, from the map-wide
+clock (:meth:`MapState.tick`), which also tells a dirty tile (``version != saved_version``) and
+lets a client ask what changed since the version it holds (``tiles/changed``).
+
+* It moves exactly when the tile's content (its planes) changes: a fuse bumps it when its patch
+  into the tile has a non-zero increment, or when it decayed a layer in place; a fuse of all
+  unknown cells there changes nothing and leaves it.  A non-zero increment that the clamp absorbs
+  entirely still bumps it: telling would cost a copy of the block, and the fuse's second phase
+  allocates nothing.  A spurious bump costs a client one tile's download, never a stale copy.
+* A tile created, inserted (a replica, a handover) or loaded without a version gets a new one; a
+  tile loaded back from the store keeps its own (the ``tile_version`` header field), and the
+  clock moves past it.  The clock starts at the wall clock in microseconds, so a restarted server
+  never reuses a number (it ticks far less than once a microsecond).
+* A decaying layer (:mod:`sogm_service.core.map.forget`) is content as the tile holds it: its
+  planes and decay stamps, which its reads decay to the map's clock on the fly.  The clock's
+  advance alone does not move the version (the decayed read is a function of the stored state
+  and the time asked for); a write that decays the layer in place does.
+
 Pure (numpy only, no I/O).
 """
 

@@ -24,11 +24,13 @@ Mark = tuple[float, int]
 
 LoaderResult = (tuple[list[str], Fixed, float]
                 | tuple[list[str], Fixed, float, dict[str, float]]
-                | tuple[list[str], Fixed, float, dict[str, float], dict[str, Mark]])
+                | tuple[list[str], Fixed, float, dict[str, float], dict[str, Mark]]
+                | tuple[list[str], Fixed, float, dict[str, float], dict[str, Mark], int])
 """A tile brought back from storage: ``(layer names, (N, T, T) stack, stamp)``, and for a tile
 with decaying layers its decay stamps ``{layer: decayed up to}`` (:mod:`.forget`) as a fourth
 item, and for a tile with applied marks (the last ISM fused into it per ISM key, ``Tile.applied``)
-those as a fifth (the fourth then ``{}`` when nothing decays).  Items are added at the end so
+those as a fifth (the fourth then ``{}`` when nothing decays), and the tile's version
+(``Tile.version``, kept across a store) as a sixth.  Items are added at the end so
 that loaders of the shorter shapes keep working."""
 
 Loader = Callable[[int, int], LoaderResult | None]

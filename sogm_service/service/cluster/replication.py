@@ -49,7 +49,7 @@ class TileFiles:
 
     def encode(self, snap: TileSnapshot) -> bytes:
         header = tile_header(self.expect, snap.index[0], snap.index[1], snap.layers, snap.stamp,
-                             self.plane, snap.decay, snap.applied)
+                             self.plane, snap.decay, snap.applied, snap.version)
         return tile_to_bytes(header, snap.data)
 
     def install(self, tiled: TiledMap, blob: bytes, index: TileIndex,

@@ -40,6 +40,7 @@ from sogm_service.wire.messages import (
     SupercellReply,
     SupercellRequest,
     TileEvent,
+    TilesChangedRequest,
     WireArray,
 )
 
@@ -115,6 +116,8 @@ def valid_instances() -> dict[type[BaseModel], BaseModel]:
     instances[RejectionReport] = RejectionReport(
         key="ism/r1/laser/obstacle", code="wrong_frame", message="ISM frame 'odom'",
         stamp=6.0, id="a1b2c3-7")
+    instances[TilesChangedRequest] = TilesChangedRequest(x=1.0, y=-2.0, width=30.0, height=20.0,
+                                                         held={"0,-1": 17, "3,2": 0})
     instances[IsmAck] = IsmAck(id="a1b2c3-7", status="rejected", key="ism/r1/laser/obstacle",
                                code="wrong_frame", message="ISM frame 'odom'", stamp=6.0)
     return instances
