@@ -22,12 +22,12 @@ import pytest
 pytest.importorskip("rosbags")  # the [ros2] extra
 pytest.importorskip("xxhash")
 
-from rosbags.typesys import get_types_from_msg  # noqa: E402
+from rosbags.typesys import get_types_from_msg
 
-from sogm_service.client import MapClient  # noqa: E402
-from sogm_service.client.session import loopback_settings, open_session  # noqa: E402
-from tests.conftest import start_server, wait_processed, wait_until  # noqa: E402
-from tests.integration.test_ros2_bridge import (  # noqa: E402
+from sogm_service.client import MapClient
+from sogm_service.client.session import loopback_settings, open_session
+from tests.conftest import start_server, wait_processed, wait_until
+from tests.integration.test_ros2_bridge import (
     GETMAP_H,
     GETMAP_T,
     GRID_H,
@@ -68,7 +68,7 @@ class Holder:
 
     def on_grid(self, sample: Any) -> None:
         raw = sample.payload.to_bytes()
-        m = TS.deserialize_cdr(raw, "nav_msgs/msg/OccupancyGrid")
+        m: Any = TS.deserialize_cdr(raw, "nav_msgs/msg/OccupancyGrid")
         with self.lock:
             self.grid = m
             self.data = np.array(m.data, dtype=np.int8).reshape(m.info.height, m.info.width)
@@ -76,7 +76,7 @@ class Holder:
 
     def on_update(self, sample: Any) -> None:
         raw = sample.payload.to_bytes()
-        u = TS.deserialize_cdr(raw, UPDATE)
+        u: Any = TS.deserialize_cdr(raw, UPDATE)
         with self.lock:
             stamp = u.header.stamp.sec + u.header.stamp.nanosec * 1e-9
             self.updates.append((time.monotonic(), len(raw), stamp))
@@ -105,8 +105,9 @@ def get_map(ros: Any) -> Any:
                            attachment=struct.pack("<qqB", 1, time.time_ns(), 16)
                            + spec_gid(client_token), timeout=TIMEOUT))
     assert len(replies) == 1 and replies[0].ok is not None
-    return TS.deserialize_cdr(replies[0].ok.payload.to_bytes(),
-                              "nav_msgs/srv/GetMap_Response").map
+    reply: Any = TS.deserialize_cdr(replies[0].ok.payload.to_bytes(),
+                                    "nav_msgs/srv/GetMap_Response")
+    return reply.map
 
 
 def expected_cells(fixed: np.ndarray) -> np.ndarray:
@@ -189,7 +190,8 @@ def test_updates_keep_a_ros_subscriber_equal_to_get_map_for_a_share_of_the_bytes
             assert cells is not None
             assert np.array_equal(cells, expected_cells(native.data[0]))
             assert np.count_nonzero(cells >= 0) > 8 * 900 * 0.7
-            assert wait_until(lambda: np.array_equal(layer.cells(), cells), TIMEOUT)
+            assert wait_until(lambda: np.array_equal(layer.cells(), cells),  # type: ignore[arg-type]
+                              TIMEOUT)
     finally:
         pub.close()
         for s in subs:
