@@ -16,9 +16,10 @@ server and talks to it through callbacks:
   ``on_pose(robot, x, y, yaw, stamp)``.
 * Maps out: :meth:`Ros2Bridge.publish_maps` asks ``map_source()`` for a
   :class:`~sogm_service.adapters.ros2.views.MapSnapshot` (layer grids and the fused grid, as
-  :func:`~sogm_service.adapters.ros2.views.map_snapshot` makes them) and publishes each grid
-  that changed on ``/sogm/<map>/layers/<layer>`` and ``/sogm/<map>/map``, TRANSIENT_LOCAL
-  depth 1: a Zenoh advanced publisher with a cache of one sample, publisher detection and a
+  :func:`~sogm_service.adapters.ros2.views.map_snapshot` makes them) and publishes what
+  changed of each on ``/sogm/<map>/layers/<layer>`` and ``/sogm/<map>/map`` (whole grids) or
+  on ``<topic>_updates`` (``map_msgs/msg/OccupancyGridUpdate`` rectangles,
+  :mod:`~sogm_service.service.ros2.mapsout`), all TRANSIENT_LOCAL depth 1: a Zenoh advanced publisher with a cache of one sample, publisher detection and a
   sporadic heartbeat, so a late RViz or nav2 (advanced subscriber with history and
   late-publisher detection, as rmw_zenoh declares them) still gets the map.  Congestion
   control is BLOCK (rmw_zenoh uses DROP for KEEP_LAST): maps are megabytes, are only sent when
