@@ -25,6 +25,7 @@ import zenoh
 from pydantic import BaseModel
 
 from sogm_service.client.isms import IsmFootprint, build_ism, ism_footprint
+from sogm_service.client.mirror import TileMirror
 from sogm_service.client.results import GridResult, grid_result, service_error
 from sogm_service.client.session import (
     DEFAULT_ENDPOINT,
@@ -217,6 +218,14 @@ class MapClient:
     def robots(self) -> RobotTilesReply:
         """Each robot's current tile (its last tile-switch event)."""
         return self._get(RobotTilesReply, "robots")
+
+    def mirror(self, x: float, y: float, width: float, height: float,
+               timeout: float | None = None) -> TileMirror:
+        """A local copy of the tiles a box of the map frame (centre ``x``, ``y``; m) overlaps;
+        its :meth:`~TileMirror.refresh` pulls only the tiles that changed
+        (:mod:`sogm_service.client.mirror`).  Asks ``info`` once for the lattice."""
+        return TileMirror(self.session, MapKeys(self.prefix, self.map_name), self.info(), x, y,
+                          width, height, timeout or self.timeout)
 
     def tiles(self, i: int | None = None, j: int | None = None,
               timeout: float | None = None) -> dict[tuple[int, int], bytes]:

@@ -21,6 +21,7 @@ nothing; the caller counts and logs it as every other refusal.  The arithmetic l
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -32,11 +33,17 @@ from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server.stats import Stats
 from sogm_service.wire.errors import BusyError, IsmRejectedError, QueryError
-from sogm_service.wire.messages import IsmMessage, SupercellRequest, WindowRequest
+from sogm_service.wire.messages import (
+    IsmMessage,
+    SupercellRequest,
+    TilesChangedRequest,
+    WindowRequest,
+)
 
 if TYPE_CHECKING:
     from sogm_service.service.server.fleet import FleetTracker
 
+TileIndex4 = tuple[int, int, int, int]
 _BYTES_PER_CELL = {"prob_u8": 1, "prob_u8_v2": 1, "occupancy_i8": 1, "logodds_i16": 2,
                    "prob_f32": 4}
 _REPLY_OVERHEAD = 4096  # the reply's fields besides its array
@@ -214,6 +221,37 @@ class Admission:
             raise QueryError("reply_too_large", f"the reply would take about {reply} bytes; "
                              f"the limit is {lim.max_reply_bytes}", "width")
         return price
+
+    def check_region(self, req: TilesChangedRequest, held: int) -> TileIndex4:
+        """A ``tiles/changed`` region as inclusive tile bounds ``(i0, j0, i1, j1)``, from its
+        numbers alone: a box or index bounds (``bad_parameter`` for neither, both or an empty
+        one), its centre in the world (``out_of_world``), at most ``max_region_tiles`` tiles
+        and versions held (``window_too_large``)."""
+        lim = self.limits.max_region_tiles
+        bounds = (req.i0, req.j0, req.i1, req.j1)
+        if any(b is not None for b in bounds) or req.width is None or req.height is None:
+            if req.width is not None or req.height is not None or None in bounds:
+                raise QueryError("bad_parameter", "name the region by width and height (and "
+                                 "x, y) or by all of i0, j0, i1, j1", "width")
+            i0, j0, i1, j1 = (int(b or 0) for b in bounds)
+            if i1 < i0 or j1 < j0:
+                raise QueryError("bad_parameter", "tile bounds need i0 <= i1 and j0 <= j1", "i1")
+        else:
+            if not fp.point_in_world(req.x, req.y, self.limits.world_extent_m):
+                raise QueryError("out_of_world", f"the region centre ({req.x:.6g}, "
+                                 f"{req.y:.6g}) m is outside the world", "x")
+            s, w2, h2 = self.span, req.width / 2, req.height / 2
+            if max(w2, h2) > lim * s:
+                raise QueryError("window_too_large", f"a region of {req.width:.6g} x "
+                                 f"{req.height:.6g} m spans more than {lim} tiles", "width")
+            i0, j0 = math.floor((req.x - w2) / s), math.floor((req.y - h2) / s)
+            i1 = max(i0, math.ceil((req.x + w2) / s) - 1)
+            j1 = max(j0, math.ceil((req.y + h2) / s) - 1)
+        count = (i1 - i0 + 1) * (j1 - j0 + 1)
+        if count > lim or held > lim:
+            raise QueryError("window_too_large", f"the region spans {count} tiles and holds "
+                             f"{held} versions; the limit is {lim} of each", "width")
+        return i0, j0, i1, j1
 
     @staticmethod
     def _supercell_bytes(price: fp.WindowPrice, n_layers: int, labels: bool,

@@ -39,7 +39,7 @@ from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.cluster.cluster import Cluster
 from sogm_service.service.cluster.replication import Replication
 from sogm_service.service.config import ServiceConfig
-from sogm_service.service.server import queries
+from sogm_service.service.server import queries, tilesync
 from sogm_service.service.server.acks import IsmOutcomes, ism_id_of
 from sogm_service.service.server.checkpoints import Checkpointer
 from sogm_service.service.server.fleet import FleetTracker
@@ -176,6 +176,10 @@ class MapServer:
         self._declared.append(self._events)
         self._declared.append(s.declare_queryable(
             self.keys.all_tiles, self._guarded("tiles", self.replication.on_tiles)))
+        self._declared.append(s.declare_queryable(self.keys.tiles_changed, self._guarded(
+            "tiles_changed", tilesync.TileSync(self.keys, self.map, self.tiles,
+                                               self.replication.files.encode,
+                                               self.pipeline.admission, self.stats).on_changed)))
         self._declared.append(s.declare_queryable(
             self.keys.robots, self._guarded("robots", lambda q: self.fleet.robots_reply())))
         self._declared.append(s.declare_queryable(self.keys.ack,
