@@ -7,7 +7,8 @@ cells.  :func:`stable_extent` makes the published extent stable, as nav2 and RVi
 grows, in whole tiles, to hold each new window and never shrinks or moves, except when growing
 would pass ``max_cells`` and the window's centre has left it.  :func:`map_snapshot` samples
 every layer once in that window and fuses the chosen layers by Eq. 6 (``max`` by default:
-P_M, a cell is as occupied as its most occupied class).  The caller holds the map lock around :func:`map_snapshot`.
+P_M, a cell is as occupied as its most occupied class).  The caller holds the map lock around
+:func:`map_snapshot`.
 """
 
 from __future__ import annotations

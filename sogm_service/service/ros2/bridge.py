@@ -19,11 +19,12 @@ server and talks to it through callbacks:
   :func:`~sogm_service.adapters.ros2.views.map_snapshot` makes them) and publishes what
   changed of each on ``/sogm/<map>/layers/<layer>`` and ``/sogm/<map>/map`` (whole grids) or
   on ``<topic>_updates`` (``map_msgs/msg/OccupancyGridUpdate`` rectangles,
-  :mod:`~sogm_service.service.ros2.mapsout`), all TRANSIENT_LOCAL depth 1: a Zenoh advanced publisher with a cache of one sample, publisher detection and a
-  sporadic heartbeat, so a late RViz or nav2 (advanced subscriber with history and
-  late-publisher detection, as rmw_zenoh declares them) still gets the map.  Congestion
-  control is BLOCK (rmw_zenoh uses DROP for KEEP_LAST): maps are megabytes, are only sent when
-  they change, and a dropped one would not come again until the next change.
+  :mod:`~sogm_service.service.ros2.mapsout`), all TRANSIENT_LOCAL depth 1: a Zenoh advanced
+  publisher with a cache of one sample, publisher detection and a sporadic heartbeat, so a
+  late RViz or nav2 (advanced subscriber with history and late-publisher detection, as
+  rmw_zenoh declares them) still gets the map.  Congestion control is BLOCK (rmw_zenoh uses
+  DROP for KEEP_LAST): maps are megabytes, are only sent when they change, and a dropped one
+  would not come again until the next change.
   Attachments carry a sequence number from 1 per publisher, the time and the publisher's gid.
 * ``nav_msgs/srv/GetMap`` on ``/sogm/<map>/get_map``: a complete queryable; the reply carries
   the CDR response and an attachment echoing the request's sequence number and client gid.
