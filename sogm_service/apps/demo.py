@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from sogm_service.apps.options import command, require_extra
+from sogm_service.wire.compression import Compression
 
 
 @dataclass
@@ -78,6 +79,9 @@ def add_parser(subparsers: Any) -> None:
                         "embedded one: every session of the demo opens from FILE as it is "
                         "(its map must be --map; default: none)")
     p.add_argument("--map", default="demo", help="map name")
+    p.add_argument("--compression", choices=["zstd", "none"], default="zstd",
+                   help="zstd: the fleet's ISMs and the demo's replies travel compressed; "
+                        "none: raw (the baseline of 'sogm-service bench bandwidth')")
     p.add_argument("--secure", action="store_true",
                    help="run everything through a fresh dev PKI (DIR/pki): mutual TLS and the "
                         "access-control rules of 'sogm-service certs', one identity per robot")
@@ -99,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
                       rate_hz=args.rate, seed=args.seed, out=args.out,
                       realtime=not args.fast, speed=args.speed, progress=not args.quiet,
                       secure=args.secure, view=args.http if args.view else None,
-                      zenoh_config=args.zenoh_config, map_name=args.map)
+                      zenoh_config=args.zenoh_config, map_name=args.map,
+                      compression=None if args.compression == "none" else "zstd")
     _print_summary(result, args.out)
     return 0
 
@@ -108,7 +113,7 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
              rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
              realtime: bool = True, speed: float = 3.0, progress: bool = True,
              secure: bool = False, view: str | None = None, zenoh_config: Path | None = None,
-             map_name: str = "demo") -> DemoResult:
+             map_name: str = "demo", compression: Compression | None = "zstd") -> DemoResult:
     """Run the whole demo; returns its summary (and writes every file into ``out``).
 
     ``secure``: a fresh dev PKI in ``out/pki`` (:func:`sogm_service.apps.certs.init_pki`); the
@@ -117,7 +122,7 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     ``view``: serve the live viewer on that ``HOST:PORT`` during the run, and after it until
     SIGINT/SIGTERM.  ``zenoh_config``: no embedded server; the robots and the demo's client
     open their sessions from that file (as it is) and drive a running server's map
-    ``map_name``."""
+    ``map_name``.  ``compression``: the fleet's ISMs and the demo's queries (``None``: raw)."""
     from sogm_service.client.mapclient import MapClient
     from sogm_service.client.session import free_tcp_endpoint
     from sogm_service.service.server.server import MapServer
@@ -148,9 +153,10 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
             viewer = _start_viewer(endpoint, view, configs.get("viewer"), map_name)
         with MapClient.connect(endpoint, map_name=map_name, timeout=10.0,
                                zenoh_config=configs.get("viewer")) as client:
+            client.compression = compression
             watcher = _FleetWatcher(client, out / "tile_events.log")
             fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
-                           server, progress, configs)
+                           server, progress, configs, compression)
             if isinstance(server, _Remote):
                 server.wait_idle(60.0, published=fleet.isms)
             else:
@@ -278,7 +284,7 @@ class _FleetWatcher:
 
 def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: float,
            seed: int, realtime: bool, speed: float, server: Any, progress: bool,
-           configs: dict[str, Path]) -> Any:
+           configs: dict[str, Path], compression: Compression | None = "zstd") -> Any:
     """Run the fleet in a thread while a progress bar shows the server's view."""
     from sogm_service.sim.fleet import run_fleet
 
@@ -291,7 +297,8 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
                                  rate_hz=rate_hz, seed=seed, realtime=realtime, speed=speed,
                                  zenoh_configs=configs or None,
                                  sensors=demo_sensors(world),
-                                 observers=demo_observers(world))
+                                 observers=demo_observers(world),
+                                 compression=compression)
 
     thread = threading.Thread(target=fleet, name="demo-fleet")
     t0 = time.monotonic()

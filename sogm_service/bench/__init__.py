@@ -60,6 +60,11 @@ def registry() -> list[Benchmark]:
 
         return cluster_submap(quick)
 
+    def bandwidth(quick: bool) -> Row:
+        from sogm_service.bench.bandwidth import bandwidth
+
+        return bandwidth(quick)
+
     return [
         Benchmark("fuse_aligned", "aligned 1024x1024 prob_u8 ISM vs the streaming floor",
                   compute.fuse_aligned),
@@ -84,6 +89,8 @@ def registry() -> list[Benchmark]:
                   z("startup")),  # type: ignore[arg-type]
         Benchmark("matching", "scan match of a 256x256 ISM vs one ORB detect",
                   compute.matching),
+        Benchmark("bandwidth", "the demo fleet's bytes on the network by class, zstd vs raw",
+                  bandwidth),
     ]
 
 

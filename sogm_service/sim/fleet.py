@@ -41,6 +41,7 @@ from sogm_service.sim.robots import SimStep, simulate
 from sogm_service.sim.sensors import Sensor, SensorIsm
 from sogm_service.sim.worlds import World
 from sogm_service.wire import keys
+from sogm_service.wire.compression import ZSTD, Compression
 
 log = logging.getLogger(__name__)
 
@@ -79,9 +80,11 @@ class RobotLink:
 
     def __init__(self, name: str, endpoint: str, *, ism_prefix: str = "ism",
                  pose_prefix: str = "pose", encoding: str = "occupancy_i8",
-                 frame: str = "map", zenoh_config: Path | None = None) -> None:
+                 frame: str = "map", zenoh_config: Path | None = None,
+                 compression: Compression | None = ZSTD) -> None:
         self.name = name
         self.client = MapClient.connect(endpoint, zenoh_config=zenoh_config)
+        self.client.compression = compression  # None: raw ISMs (a baseline, older servers)
         self.ism_prefix = ism_prefix
         self.pose_prefix = pose_prefix
         self.encoding = encoding
@@ -117,7 +120,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               encoding: str = "occupancy_i8", ism_prefix: str = "ism", pose_prefix: str = "pose",
               stop: threading.Event | None = None, speed: float = 1.0,
               zenoh_configs: Mapping[str, Path] | None = None,
-              observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = ()) -> FleetStats:
+              observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = (),
+              compression: Compression | None = ZSTD) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
@@ -127,7 +131,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     the run's start plus simulated time.  ``stop`` ends the run early.  ``zenoh_configs`` gives
     robots their own Zenoh config (``robot1`` -> its JSON5, e.g. from ``sogm-service certs``)
     instead of a plain connection to ``endpoint``.  ``observers`` add ISMs to each step
-    (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  Blocks until done.
+    (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  ``compression``: how the robots
+    send their ISMs (zstd, or ``None`` for raw).  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -138,7 +143,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
         for name in names:
             links[name] = RobotLink(name, endpoint, ism_prefix=ism_prefix,
                                     pose_prefix=pose_prefix, encoding=encoding,
-                                    zenoh_config=(zenoh_configs or {}).get(name))
+                                    zenoh_config=(zenoh_configs or {}).get(name),
+                                    compression=compression)
         for step in simulate(world, robots, duration_s, rate_hz, seed, odom_noise=odom_noise,
                              sensors=sensors):
             if stop is not None and stop.is_set():
