@@ -95,6 +95,11 @@ def test_first_whole_then_updates_then_whole_on_a_new_extent(
     [(kind, u)] = got.take(1)
     assert kind == "update" and (u.x, u.y, u.width, u.height) == (70, 3, 3, 2)
     assert np.asarray(u.data).tolist() == [90] * 6
+    # the updates' publisher token: rmw_zenoh's format, map_msgs' hash, the map topics' QoS
+    tokens = [t for t in bridge.token_keys() if "/MP/" in t and "map_updates" in t]
+    assert len(tokens) == 1 and tokens[0].endswith(
+        "/MP/%/%/sogm_service/%sogm%m%map_updates/map_msgs::msg::dds_::OccupancyGridUpdate_/"
+        "RIHS01_c4095b0be2e4363f8978a1570e0293ee093436f1e1c61d99b48502ac317025e8/:1:,1:,:,:,,")
     # the same cells on a moved extent: a whole grid, and the latched update replaced by an
     # empty one (a late subscriber never writes an older update into a newer grid)
     assert bridge.publish_grid(bridge.map_topic, grid(cells, x=3.2))
