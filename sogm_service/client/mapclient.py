@@ -26,6 +26,7 @@ from pydantic import BaseModel
 
 from sogm_service.client.isms import IsmFootprint, build_ism, ism_footprint
 from sogm_service.client.mirror import TileMirror
+from sogm_service.client.offline import HeldIsm, OfflinePolicy, OfflineStats
 from sogm_service.client.results import GridResult, grid_result, service_error
 from sogm_service.client.session import (
     DEFAULT_ENDPOINT,
@@ -70,6 +71,10 @@ DEFAULT_TIMEOUT_S = 5.0
 WAIT_FUSED_TIMEOUT_S = 15.0
 """Default budget of :meth:`MapClient.wait_fused` (a busy server's queue drains first)."""
 
+RETRY_PAUSE_S = (0.05, 0.5)
+"""A query without any reply (no route yet: a drop-out) is asked again after 50 ms, doubling
+to 500 ms, until its budget is spent."""
+
 
 class MapClient:
     """Queries and publishes against one map (``<prefix>/<map>/...``) over a Zenoh session."""
@@ -90,6 +95,8 @@ class MapClient:
         # None: raw, for servers older than schema version 3.
         self.compression: Compression | None = zstd.ZSTD
         self.max_reply_bytes = MAX_REPLY_BYTES  # a compressed reply may expand to this much
+        self.offline = OfflinePolicy(self._publisher, self._forget)  # keys without a route
+        self._dropped: dict[str, str] = {}  # ISM id -> key, dropped by the offline policy
 
     @classmethod
     def connect(cls, endpoint: str | None = None, map_name: str = "default",
@@ -125,6 +132,7 @@ class MapClient:
             raise ConnectError(exc.message, exc.parameter) from None
 
     def close(self) -> None:
+        self._forget(self.offline.buffer.discard())  # held ISMs whose route never returned
         for pub in self._publishers.values():
             pub.undeclare()
         self._publishers.clear()
@@ -149,17 +157,26 @@ class MapClient:
             selector += "?" + ";".join(f"{k}={_param(v)}" for k, v in params.items()
                                       if v is not None)
         budget = timeout or self.timeout
-        for reply in self.session.get(selector, timeout=budget):
-            if reply.ok is not None:
-                payload = reply.ok.payload.to_bytes()
-                if str(reply.ok.encoding).endswith(";" + encodings.ZSTD_SCHEMA):
-                    return zstd.decompress_at_most(payload, self.max_reply_bytes)
-                return payload
-            if reply.err is not None:
-                payload = reply.err.payload.to_bytes()
-                if payload == b"Timeout":  # Zenoh's own: the queryable did not answer in time
-                    raise QueryTimeoutError(f"{key}: no answer within {budget:g} s")
-                raise service_error(payload)
+        deadline, pause = time.monotonic() + budget, RETRY_PAUSE_S[0]
+        while True:
+            left = max(deadline - time.monotonic(), 0.05)
+            for reply in self.session.get(selector, timeout=left):
+                if reply.ok is not None:
+                    payload = reply.ok.payload.to_bytes()
+                    if str(reply.ok.encoding).endswith(";" + encodings.ZSTD_SCHEMA):
+                        return zstd.decompress_at_most(payload, self.max_reply_bytes)
+                    return payload
+                if reply.err is not None:
+                    payload = reply.err.payload.to_bytes()
+                    if payload == b"Timeout":  # Zenoh's: the queryable did not answer in time
+                        raise QueryTimeoutError(f"{key}: no answer within {budget:g} s")
+                    raise service_error(payload)
+            # No reply at all: no route to a server (yet); a link coming back within the
+            # budget answers the next try.  Service errors above are never asked again.
+            if time.monotonic() + pause >= deadline:
+                break
+            time.sleep(pause)
+            pause = min(pause * 2, RETRY_PAUSE_S[1])
         raise QueryTimeoutError(f"no reply from {key} within {budget:g} s: is a server of map "
                                 f"{self.map_name!r} running and reachable?")
 
@@ -289,10 +306,25 @@ class MapClient:
         ism_id = f"{self._id_prefix}-{next(self._ids)}"
         self._pending[ism_id] = key
         sent = msg if self.compression is None else msg.compressed()
-        self._publisher(key).put(codec.encode(sent), attachment=ism_id.encode("ascii"))
+        self.offline.send(HeldIsm(key, codec.encode(sent), ism_id))
         if wait:
             self.wait_fused([ism_id], timeout)
         return msg
+
+    def flush_offline(self, timeout: float = 0.0) -> int:
+        """Send the held ISMs whose key has a route again, waiting up to ``timeout`` seconds
+        for the rest; returns how many are still held."""
+        return self.offline.flush(timeout)
+
+    def offline_stats(self) -> OfflineStats:
+        """ISMs offered, sent, held for a route and dropped by the offline policy."""
+        return self.offline.buffer.stats()
+
+    def _forget(self, ism_ids: list[str]) -> None:
+        for ism_id in ism_ids:  # dropped by the offline policy: wait_fused says so
+            self._dropped[ism_id] = self._pending.pop(ism_id, "")
+        while len(self._dropped) > 4096:
+            self._dropped.pop(next(iter(self._dropped)))
 
     @property
     def last_ism_id(self) -> str | None:
@@ -318,9 +350,14 @@ class MapClient:
         done: dict[str, IsmAck] = {}
         pause = 0.002
         while True:
+            self.offline.flush()
             for ism_id in ids:
                 if ism_id in done:
                     continue
+                if ism_id in self._dropped:
+                    raise IsmNotFusedError("dropped_offline", "dropped by the client's offline "
+                                           "policy (no route to a server: only the latest "
+                                           "ISM of a key is kept)", self._dropped.pop(ism_id))
                 ack = self.ack(ism_id, timeout=max(0.5, min(self.timeout,
                                                             deadline - time.monotonic())))
                 if ack.status == "rejected":

@@ -11,6 +11,12 @@ mode, multicast scouting off, to the map server's endpoint, e.g. ``tcp/127.0.0.1
   with ``layer`` set to the class, so that every robot's ISMs of one class fuse into one map
   layer (the server would otherwise name the layer after the key's remainder).
 
+A robot whose link drops keeps publishing: while its ISM keys have no route to a server, its
+client keeps the latest ISM per key and drops the rest (:mod:`sogm_service.client.offline`),
+and sends what it kept when the route returns.  :class:`FleetStats` counts both, so
+``isms = isms_sent + isms_dropped``; on closing, each robot waits up to ``flush_s`` for a
+route for what it still holds.
+
 ISMs travel as ``occupancy_i8`` (nav_msgs 0..100, -1 unknown) by default: one byte a cell and an
 exact "unknown" (``prob_u8`` cannot say 0.5 exactly).  Puts use congestion control BLOCK
 (MapClient's publishers), so large ISMs are never dropped.  Every session is closed on exit,
@@ -51,10 +57,18 @@ class FleetStats:
     """What :func:`run_fleet` sent."""
 
     steps: int = 0
-    isms: int = 0
+    isms: int = 0  # offered: every ISM the fleet produced
     poses: int = 0
     ism_bytes: int = 0
     wall_s: float = 0.0
+    isms_dropped: int = 0  # by the offline policy (superseded, overflow, no route at the end)
+    isms_flushed: int = 0  # sent late: held during an outage, then sent when the route returned
+    outages: int = 0  # times a robot's ISM key lost its route
+
+    @property
+    def isms_sent(self) -> int:
+        """ISMs put on the wire (``isms - isms_dropped``)."""
+        return self.isms - self.isms_dropped
 
 
 def ism_key(robot: str, ism: SensorIsm, prefix: str = "ism") -> str:
@@ -110,8 +124,19 @@ class RobotLink:
         stats.isms += 1
         stats.ism_bytes += len(msg.data)
 
-    def close(self) -> None:
-        self.client.close()
+    def close(self, stats: FleetStats | None = None, flush_s: float = 0.0) -> None:
+        """Send what the offline policy still holds (waiting up to ``flush_s`` for a route),
+        add its counts to ``stats`` and close the session."""
+        try:
+            if flush_s > 0:
+                self.client.flush_offline(flush_s)
+        finally:
+            self.client.close()  # drops (and counts) what is still held
+            if stats is not None:
+                offline = self.client.offline_stats()
+                stats.isms_dropped += offline.dropped
+                stats.isms_flushed += offline.flushed
+                stats.outages += offline.outages
 
 
 def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float = 20.0,
@@ -121,7 +146,7 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               stop: threading.Event | None = None, speed: float = 1.0,
               zenoh_configs: Mapping[str, Path] | None = None,
               observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = (),
-              compression: Compression | None = ZSTD) -> FleetStats:
+              compression: Compression | None = ZSTD, flush_s: float = 5.0) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
@@ -132,7 +157,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     robots their own Zenoh config (``robot1`` -> its JSON5, e.g. from ``sogm-service certs``)
     instead of a plain connection to ``endpoint``.  ``observers`` add ISMs to each step
     (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  ``compression``: how the robots
-    send their ISMs (zstd, or ``None`` for raw).  Blocks until done.
+    send their ISMs (zstd, or ``None`` for raw).  ``flush_s``: how long each robot waits at
+    the end for a route for the ISMs it still holds after a drop-out.  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -158,7 +184,7 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     finally:
         for link in links.values():
             try:
-                link.close()
+                link.close(stats, flush_s)
             except Exception:  # closing the rest matters more than one failure
                 log.exception("closing %s's session failed", link.name)
     stats.wall_s = time.monotonic() - t_wall0
@@ -203,7 +229,7 @@ def replay_scans(scans: Iterable[LaserScan], endpoint: str, *, robot: str = "car
             link.publish_ism(SensorIsm(layer, geom, p, sensor), scan.stamp, stats)
             stats.steps += 1
     finally:
-        link.close()
+        link.close(stats, 5.0)
     stats.wall_s = time.monotonic() - t_wall0
     return stats
 
