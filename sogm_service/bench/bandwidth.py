@@ -51,13 +51,13 @@ TARGET_RATIO = 0.1
 ROS2_UPDATE_TYPE = "OccupancyGridUpdate"
 
 
-def zenoh_json5(path: Path, mode: str, *, listen: str | None = None,
+def zenoh_json5(path: Path, mode: str, *, listen: str | list[str] | None = None,
                 connect: str | None = None) -> Path:
     """A Zenoh config file: ``mode``, the endpoints, multicast scouting and shared memory off."""
     config: dict[str, Any] = {"mode": mode, "scouting": {"multicast": {"enabled": False}},
                               "transport": {"shared_memory": {"enabled": False}}}
     if listen:
-        config["listen"] = {"endpoints": [listen]}
+        config["listen"] = {"endpoints": [listen] if isinstance(listen, str) else listen}
     if connect:
         config["connect"] = {"endpoints": [connect]}
     path.write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
@@ -192,11 +192,12 @@ def ros2_available() -> bool:
 
 
 @contextmanager
-def serve(directory: Path, ros2: bool) -> Iterator[str]:
-    """``sogm-service serve [--ros2]`` with shared memory off on an ephemeral loopback port,
-    once it answers; yields its endpoint."""
-    endpoint = free_tcp_endpoint()
-    config = zenoh_json5(directory / "server.json5", "peer", listen=endpoint)
+def serve(directory: Path, ros2: bool, listen: list[str] | None = None) -> Iterator[str]:
+    """``sogm-service serve [--ros2]`` with shared memory off on an ephemeral loopback port (or
+    on ``listen``), once it answers; yields its loopback endpoint (else its first)."""
+    endpoints = listen or [free_tcp_endpoint()]
+    endpoint = next((e for e in endpoints if e.startswith("tcp/127.0.0.1:")), endpoints[0])
+    config = zenoh_json5(directory / "server.json5", "peer", listen=endpoints)
     proc = Proc([PY, "-m", "sogm_service", "serve", "--zenoh-config", str(config),
                  *(["--ros2"] if ros2 else [])], directory / "server.log")
     try:
