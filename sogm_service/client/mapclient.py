@@ -316,6 +316,11 @@ class MapClient:
         for the rest; returns how many are still held."""
         return self.offline.flush(timeout)
 
+    def settle_offline(self, timeout: float = 2.0) -> int:
+        """Ask the server about the ISMs put just before a route was lost; returns how many it
+        never received (``lost_in_flight`` in :meth:`offline_stats`)."""
+        return self.offline.settle(lambda ism_id: self.ack(ism_id, timeout).status)
+
     def offline_stats(self) -> OfflineStats:
         """ISMs offered, sent, held for a route and dropped by the offline policy."""
         return self.offline.buffer.stats()

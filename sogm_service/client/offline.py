@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -25,6 +25,9 @@ DEFAULT_MAX_KEYS = 64
 DEFAULT_MAX_BYTES = 32 << 20
 """Bytes of encoded ISMs the buffer keeps at most (32 MiB); the oldest go beyond."""
 
+RECENT_PER_KEY = 8
+"""Ids of a key's last puts remembered: when its route goes, they may have been on the way."""
+
 ROUTE_WAIT_S = 0.5
 """How long a new ISM key's publisher waits for its first match before the policy holds its
 ISM (through a router, a route takes a few milliseconds to be known)."""
@@ -35,7 +38,8 @@ class OfflineStats:
     """What became of the ISMs a client was offered (``MapClient.offline_stats()``).
 
     ``offered = sent + held + dropped`` at every moment; ``flushed`` counts the sent ones that
-    waited in the buffer for the route to return."""
+    waited in the buffer for the route to return; ``lost_in_flight`` the sent ones that were
+    on their way when the link went (known once the server's acknowledgements say so)."""
 
     offered: int = 0
     sent: int = 0
@@ -45,6 +49,7 @@ class OfflineStats:
     dropped_overflow: int = 0  # the buffer was full (keys or bytes): the oldest went
     dropped_unsent: int = 0  # still held when the client closed (the route never returned)
     outages: int = 0  # times an ISM found its key without a route after it had one
+    lost_in_flight: int = 0  # sent just before a route was lost, and unknown to the server
 
     @property
     def dropped(self) -> int:
@@ -78,6 +83,8 @@ class OfflineBuffer:
         self._stats = OfflineStats()
         self._lock = threading.Lock()
         self._routed: set[str] = set()  # keys that had a route (an outage is losing it)
+        self._recent: dict[str, deque[str]] = {}  # key -> ids of its last puts
+        self._suspects: dict[str, None] = {}  # ids put just before their key lost its route
 
     def __len__(self) -> int:
         with self._lock:
@@ -92,10 +99,12 @@ class OfflineBuffer:
         with self._lock:
             self._stats = replace(self._stats, offered=self._stats.offered + 1)
 
-    def sent(self, key: str, flushed: bool = False) -> None:
+    def sent(self, key: str, flushed: bool = False, ism_id: str | None = None) -> None:
         """Count one ISM put on the wire (``flushed``: it came out of the buffer)."""
         with self._lock:
             self._routed.add(key)
+            if ism_id is not None:
+                self._recent.setdefault(key, deque(maxlen=RECENT_PER_KEY)).append(ism_id)
             self._stats = replace(self._stats, sent=self._stats.sent + 1,
                                   flushed=self._stats.flushed + int(flushed))
 
@@ -107,6 +116,7 @@ class OfflineBuffer:
             if item.key in self._routed:
                 self._routed.discard(item.key)
                 stats = replace(stats, outages=stats.outages + 1)
+                self._suspects.update(dict.fromkeys(self._recent.pop(item.key, ())))
             old = self._held.pop(item.key, None)
             if old is not None:
                 self._bytes -= len(old.payload)
@@ -127,6 +137,20 @@ class OfflineBuffer:
                 self._bytes += len(item.payload)
             self._stats = replace(stats, dropped_overflow=stats.dropped_overflow + overflow)
         return dropped
+
+    def suspects(self) -> list[str]:
+        """Ids put shortly before their key lost its route: maybe lost on the way."""
+        with self._lock:
+            return list(self._suspects)
+
+    def settled(self, ism_id: str, lost: bool) -> None:
+        """The server said what became of a suspect (``lost``: it never heard of it)."""
+        with self._lock:
+            if ism_id in self._suspects:
+                del self._suspects[ism_id]
+                if lost:
+                    self._stats = replace(self._stats,
+                                          lost_in_flight=self._stats.lost_in_flight + 1)
 
     def take(self) -> list[HeldIsm]:
         """Every kept ISM, oldest first, out of the buffer (to send, or :meth:`hold` again)."""
@@ -196,7 +220,7 @@ class OfflinePolicy:
         if has_route(pub):
             self.flush()
             pub.put(item.payload, attachment=item.ism_id.encode("ascii"))
-            self.buffer.sent(item.key)
+            self.buffer.sent(item.key, ism_id=item.ism_id)
         else:
             self._forget(self.buffer.hold(item))
 
@@ -210,10 +234,24 @@ class OfflinePolicy:
                 pub = self._publisher(item.key)
                 if has_route(pub):
                     pub.put(item.payload, attachment=item.ism_id.encode("ascii"))
-                    self.buffer.sent(item.key, flushed=True)
+                    self.buffer.sent(item.key, flushed=True, ism_id=item.ism_id)
                 else:
                     waiting.append(item)
             self._forget(self.buffer.put_back(waiting))
             if not waiting or time.monotonic() >= deadline:
                 return len(self.buffer)
             time.sleep(0.05)
+
+    def settle(self, status: Callable[[str], str]) -> int:
+        """Ask ``status(id)`` (the server's acknowledgement) about each ISM put just before its
+        key lost its route; returns how many the server never heard of (lost in flight).
+        Those it cannot be asked about yet stay suspects."""
+        lost = 0
+        for ism_id in self.buffer.suspects():
+            try:
+                state = status(ism_id)
+            except Exception:  # no answer (yet): ask again on the next settle
+                continue
+            self.buffer.settled(ism_id, state == "unknown")
+            lost += state == "unknown"
+        return lost

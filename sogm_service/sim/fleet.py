@@ -64,6 +64,7 @@ class FleetStats:
     isms_dropped: int = 0  # by the offline policy (superseded, overflow, no route at the end)
     isms_flushed: int = 0  # sent late: held during an outage, then sent when the route returned
     outages: int = 0  # times a robot's ISM key lost its route
+    isms_lost: int = 0  # sent as the link went, never received (the server's acks say so)
 
     @property
     def isms_sent(self) -> int:
@@ -128,8 +129,8 @@ class RobotLink:
         """Send what the offline policy still holds (waiting up to ``flush_s`` for a route),
         add its counts to ``stats`` and close the session."""
         try:
-            if flush_s > 0:
-                self.client.flush_offline(flush_s)
+            if flush_s > 0 and self.client.flush_offline(flush_s) == 0:
+                self.client.settle_offline(min(flush_s, 2.0))
         finally:
             self.client.close()  # drops (and counts) what is still held
             if stats is not None:
@@ -137,6 +138,7 @@ class RobotLink:
                 stats.isms_dropped += offline.dropped
                 stats.isms_flushed += offline.flushed
                 stats.outages += offline.outages
+                stats.isms_lost += offline.lost_in_flight
 
 
 def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float = 20.0,
