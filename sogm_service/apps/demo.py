@@ -44,6 +44,15 @@ class DemoResult:
     supercells: int | None = None
     wall_s: float = 0.0
     moving: dict[str, Any] = field(default_factory=dict)  # the forgetting person layer
+    isms_dropped_offline: int = 0  # by the robots' offline policy during drop-outs
+    isms_lost_in_flight: int = 0  # sent as a link went, never received (by the server's acks)
+
+    @property
+    def complete(self) -> bool:
+        """The server fused every ISM it was sent (all published, less those the robots'
+        offline policy dropped and those lost on a link as it went)."""
+        return self.isms_fused >= (self.isms_published - self.isms_dropped_offline
+                                   - self.isms_lost_in_flight)
 
 
 def add_parser(subparsers: Any) -> None:
@@ -106,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
                       zenoh_config=args.zenoh_config, map_name=args.map,
                       compression=None if args.compression == "none" else "zstd")
     _print_summary(result, args.out)
-    return 0
+    return 0 if result.complete else 1
 
 
 def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 60.0,
@@ -158,7 +167,7 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
             fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
                            server, progress, configs, compression)
             if isinstance(server, _Remote):
-                server.wait_idle(60.0, published=fleet.isms)
+                server.wait_idle(60.0, published=fleet.isms_sent - fleet.isms_lost)
             else:
                 server.wait_idle(timeout=60.0)
             result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out)
@@ -361,7 +370,8 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
         isms_fused=counters.get("isms_fused", 0), isms_rejected=sum(rejected.values()),
         tile_switches=watcher.events, layers=layers,
         iou=class_iou(world, layers, sub.probabilities()), submap_latency_ms=latency,
-        files=sorted(files), supercells=supercells, moving=moving)
+        files=sorted(files), supercells=supercells, moving=moving,
+        isms_dropped_offline=fleet.isms_dropped, isms_lost_in_flight=fleet.isms_lost)
 
 
 def _world_window(world: Any) -> dict[str, Any]:
@@ -377,6 +387,13 @@ def _print_summary(r: DemoResult, out: Path) -> None:
           f"{r.wall_s:.1f} s wall")
     print(f"  ISMs published {r.isms_published}, fused {r.isms_fused}, "
           f"rejected {r.isms_rejected}; tile switches {r.tile_switches}")
+    if r.isms_dropped_offline or r.isms_lost_in_flight:
+        print(f"  drop-outs: {r.isms_dropped_offline} ISMs dropped by the offline policy "
+              f"(latest per layer kept), {r.isms_lost_in_flight} lost in flight")
+    if not r.complete:
+        print(f"  incomplete: the server fused {r.isms_fused} of the "
+              f"{r.isms_published - r.isms_dropped_offline - r.isms_lost_in_flight} "
+              "ISMs it was sent")
     print("  per-class IoU (observed cells): " +
           ", ".join(f"{k} {v:.2f}" for k, v in r.iou.items()))
     if r.submap_latency_ms:
