@@ -25,8 +25,13 @@ DEFAULT_MAX_KEYS = 64
 DEFAULT_MAX_BYTES = 32 << 20
 """Bytes of encoded ISMs the buffer keeps at most (32 MiB); the oldest go beyond."""
 
-RECENT_PER_KEY = 8
-"""Ids of a key's last puts remembered: when its route goes, they may have been on the way."""
+IN_FLIGHT_S = 15.0
+"""How far back a key's puts may have been lost when its route goes: a link that goes silent
+is noticed only when Zenoh's lease expires (``transport/link/tx/lease``, 10 s by default),
+and what was put meanwhile went into the dead link."""
+
+RECENT_PER_KEY = 512
+"""At most this many ids of a key's recent puts are remembered (the oldest go first)."""
 
 ROUTE_WAIT_S = 0.5
 """How long a new ISM key's publisher waits for its first match before the policy holds its
@@ -83,7 +88,7 @@ class OfflineBuffer:
         self._stats = OfflineStats()
         self._lock = threading.Lock()
         self._routed: set[str] = set()  # keys that had a route (an outage is losing it)
-        self._recent: dict[str, deque[str]] = {}  # key -> ids of its last puts
+        self._recent: dict[str, deque[tuple[float, str]]] = {}  # key -> (when, id) of puts
         self._suspects: dict[str, None] = {}  # ids put just before their key lost its route
 
     def __len__(self) -> int:
@@ -104,7 +109,11 @@ class OfflineBuffer:
         with self._lock:
             self._routed.add(key)
             if ism_id is not None:
-                self._recent.setdefault(key, deque(maxlen=RECENT_PER_KEY)).append(ism_id)
+                now = time.monotonic()
+                recent = self._recent.setdefault(key, deque(maxlen=RECENT_PER_KEY))
+                while recent and recent[0][0] < now - IN_FLIGHT_S:
+                    recent.popleft()
+                recent.append((now, ism_id))
             self._stats = replace(self._stats, sent=self._stats.sent + 1,
                                   flushed=self._stats.flushed + int(flushed))
 
@@ -116,7 +125,9 @@ class OfflineBuffer:
             if item.key in self._routed:
                 self._routed.discard(item.key)
                 stats = replace(stats, outages=stats.outages + 1)
-                self._suspects.update(dict.fromkeys(self._recent.pop(item.key, ())))
+                since = time.monotonic() - IN_FLIGHT_S
+                self._suspects.update(dict.fromkeys(
+                    i for t, i in self._recent.pop(item.key, ()) if t >= since))
             old = self._held.pop(item.key, None)
             if old is not None:
                 self._bytes -= len(old.payload)
@@ -250,8 +261,8 @@ class OfflinePolicy:
         for ism_id in self.buffer.suspects():
             try:
                 state = status(ism_id)
-            except Exception:  # no answer (yet): ask again on the next settle
-                continue
+            except Exception:  # no answer (yet): the rest stay suspects for the next settle
+                break
             self.buffer.settled(ism_id, state == "unknown")
             lost += state == "unknown"
         return lost
