@@ -14,7 +14,7 @@ def add_parser(subparsers: Any) -> None:
     from sogm_service.bench import add_arguments as bench_arguments
     from sogm_service.bench import names as bench_names
     from sogm_service.eval.matching import add_arguments as matching_arguments
-    from sogm_service.eval.segmentation import _add_supercells_options
+    from sogm_service.eval.segmentation import add_arguments as supercells_arguments
 
     ev = command(subparsers, "eval", "evaluations: eval supercells (the paper's, SEVDS vs "
                                      "SEEDS/SLIC/SLICO/LSC), eval matching (scan matching on "
@@ -22,7 +22,7 @@ def add_parser(subparsers: Any) -> None:
     sub = subcommands(ev, "eval_what", "WHAT")
     sc = command(sub, "supercells", "SEVDS vs SEEDS/SLIC/SLICO/LSC on simulated table-top "
                                     "SOGMs: a markdown table, figures and CSV in --out")
-    _add_supercells_options(sc)
+    supercells_arguments(sc)
     sc.set_defaults(handler=_supercells)
     m = command(sub, "matching", "scan matching on a CARMEN log: acceptance against wrong "
                                  "corrections, one table row per threshold",

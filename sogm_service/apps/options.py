@@ -38,10 +38,6 @@ class UsageError(Exception):
     """A refusal the user can fix: printed as one line after the command's name, exit 2."""
 
 
-class ToolError(Exception):
-    """A tool's refusal of its input (no such store, several maps, ...): one line, exit 2."""
-
-
 class MissingExtraError(Exception):
     """A command needs an optional extra that is not installed."""
 

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from sogm_service.apps.options import ToolError
+from sogm_service.apps.options import UsageError
 from sogm_service.store.directory import DirectoryStore, lock_directory
 from sogm_service.store.format import SUFFIX, MapKey, TileHeader, tile_from_bytes
 from sogm_service.wire.errors import TileFormatError
@@ -49,7 +49,7 @@ def _source_files(sources: list[Path]) -> list[Path]:
         elif src.is_file():
             files.append(src)
         else:
-            raise ToolError(f"{src} does not exist")
+            raise UsageError(f"{src} does not exist")
     return files
 
 

@@ -37,7 +37,14 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.apps.options import PROG, ToolError, command, fail, standalone, subcommands
+from sogm_service.apps.options import (
+    PROG,
+    UsageError,
+    command,
+    fail,
+    standalone,
+    subcommands,
+)
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
@@ -133,7 +140,7 @@ def run_tiles(args: argparse.Namespace, out: TextIO | None = None) -> int:
     handler = {"ls": cmd_ls, "export": cmd_export, "import": cmd_import}[args.tiles_command]
     try:
         return handler(args, out)
-    except (ToolError, StoreLockedError) as exc:
+    except (UsageError, StoreLockedError) as exc:
         words = getattr(args, "command_words", f"tiles {args.tiles_command}")
         return fail(words, str(exc))
 
@@ -157,7 +164,7 @@ class Entry:
 def scan(directory: Path, verify: bool = False) -> list[Entry]:
     """Read every tile header in ``directory`` (``verify``: the whole file)."""
     if not directory.is_dir():
-        raise ToolError(f"{directory} is not a directory")
+        raise UsageError(f"{directory} is not a directory")
     entries = []
     for path in sorted(directory.glob(f"*{SUFFIX}")):
         try:
@@ -249,10 +256,10 @@ def cmd_export(args: argparse.Namespace, out: TextIO) -> int:
 def _single_map(entries: list[Entry]) -> MapKey:
     keys = sorted({e.key for e in entries if e.key is not None})
     if not keys:
-        raise ToolError("no matching tiles in the directory")
+        raise UsageError("no matching tiles in the directory")
     if len(keys) > 1:
         listed = ", ".join(f"{m} r={r} T={t}" for m, r, t in keys)
-        raise ToolError(f"several maps here ({listed}); choose with --map/--resolution/"
+        raise UsageError(f"several maps here ({listed}); choose with --map/--resolution/"
                         "--tile-size")
     return keys[0]
 
@@ -273,10 +280,10 @@ def mosaic(store: DirectoryStore, lattice: TileLattice, i0: int, j0: int, i1: in
     t = lattice.tile_size
     w, h = (i1 - i0 + 1) * t, (j1 - j0 + 1) * t
     if w * h > MAX_EXPORT_CELLS:
-        raise ToolError(f"region of {w}x{h} cells is larger than {MAX_EXPORT_CELLS} per layer")
+        raise UsageError(f"region of {w}x{h} cells is larger than {MAX_EXPORT_CELLS} per layer")
     tiles = _load_tiles(store, [(i, j) for j in range(j0, j1 + 1) for i in range(i0, i1 + 1)])
     if not tiles:
-        raise ToolError(f"no readable tile in i {i0}..{i1}, j {j0}..{j1}")
+        raise UsageError(f"no readable tile in i {i0}..{i1}, j {j0}..{j1}")
     layers = _union_layers(tile.header.layers for tile in tiles)
     data = np.zeros((len(layers), h, w), dtype=np.int16)
     for tile in tiles:
@@ -310,7 +317,7 @@ def box_region(store: DirectoryStore, lattice: TileLattice, xmin: float, ymin: f
                ymax: float) -> Region:
     """The cells meeting the metric box ``[xmin, xmax] x [ymin, ymax]``."""
     if not (xmax > xmin and ymax > ymin):
-        raise ToolError("the box needs XMIN < XMAX and YMIN < YMAX")
+        raise UsageError("the box needs XMIN < XMAX and YMIN < YMAX")
     (i0, j0), (i1, j1) = lattice.tile_of(xmin, ymin), lattice.tile_of(xmax, ymax)
     full = mosaic(store, lattice, i0, j0, i1, j1)
     res = lattice.resolution
@@ -327,7 +334,7 @@ def box_region(store: DirectoryStore, lattice: TileLattice, xmin: float, ymin: f
 def _select_layers(region: Region, names: list[str]) -> Region:
     missing = [n for n in names if n not in region.layers]
     if missing:
-        raise ToolError(f"no layer {missing} here; layers are {region.layers}")
+        raise UsageError(f"no layer {missing} here; layers are {region.layers}")
     idx = [region.layers.index(n) for n in names]
     return Region(names, region.data[idx], region.origin, region.resolution)
 
@@ -338,7 +345,7 @@ def _write_export(region: Region, out: Path, scale: int) -> list[Path]:
         return _write_npy(region, out)
     if suffix == ".png":
         return _write_pngs(region, out, max(1, scale))
-    raise ToolError(f"--out must end with .png or .npy, got {out.name}")
+    raise UsageError(f"--out must end with .png or .npy, got {out.name}")
 
 
 def _write_npy(region: Region, out: Path) -> list[Path]:
@@ -368,7 +375,7 @@ def _write_pngs(region: Region, out: Path, scale: int) -> list[Path]:
         layer = region.data[k]
         img = probability_image(logodds.fixed_to_prob(layer), unknown=layer == 0, scale=scale)
         if not cv2.imwrite(os.fspath(path), img):
-            raise ToolError(f"could not write {path}")
+            raise UsageError(f"could not write {path}")
         written.append(path)
     return written
 

@@ -94,14 +94,6 @@ def registry() -> list[Benchmark]:
     ]
 
 
-def build_parser(names: list[str]) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sogm-service bench",
-                                description="Performance suite: ratios against baselines "
-                                            "measured in the same run.")
-    add_arguments(p, names)
-    return p
-
-
 def add_arguments(p: argparse.ArgumentParser, names: list[str]) -> None:
     """The options of the suite (the CLI adds them to its own subcommand)."""
     p.add_argument("names", nargs="*", metavar="NAME",
@@ -132,11 +124,6 @@ def run_one(bench: Benchmark, quick: bool) -> Row:
         traceback.print_exc()
         return Row(bench.name, None, None, "", None, "", False,
                    note=f"error: {type(exc).__name__}: {exc}"[:500])
-
-
-def main(argv: list[str] | None = None, dev_pki: DevPki | None = None) -> int:
-    """The suite; ``dev_pki`` serves ``--secure`` (the CLI passes the certs command's)."""
-    return run(build_parser(names()).parse_args(argv), dev_pki)
 
 
 def names() -> list[str]:

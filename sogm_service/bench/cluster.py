@@ -282,7 +282,7 @@ def cluster_split(quick: bool) -> Row:
     per_ism = {n: (n * median(whole), min(n, replicas) * median(split)) for n in (2, 3, 4, 8)}
     ours, base = per_ism[4][1], per_ism[4][0]
     return Row("cluster_split_bytes", ours / 1e3, base / 1e3, "kB/ISM", ours / base, "report",
-               None, "every one of 4 members receives the whole ISM (the service today)",
+               None, "every one of 4 members receives the whole ISM (what the service does)",
                f"{count} 256x256 prob_u8 ISMs at any heading; split per 256-cell tile into the "
                f"ISM-grid rectangles over each tile ({n_parts:.0f} "
                f"parts, {median(split) / median(whole):.2f}x the ISM's bytes), each sent to "

@@ -14,7 +14,7 @@ cost on their own set-up:
 * Under access control a robot may put only on ``ism/<its name>/**``: the bench publishes as
   the common name of ``CLIENT``'s certificate (``bench`` without one).
 
-Without flags everything is plain TCP on 127.0.0.1, multicast scouting off, as before.
+Without flags everything is plain TCP on 127.0.0.1, multicast scouting off.
 """
 
 from __future__ import annotations

@@ -188,7 +188,8 @@ def evaluate(scans: Sequence[LaserScan], variants: dict[str, MatchParams], *,
 
 def _trial(tiled: TiledMap, index: int, variant: str, truth: Pose2D, claimed: Pose2D,
            g: GridGeometry, inc: np.ndarray, params: MatchParams) -> Trial | None:
-    """What ``sogm_service.service.server.pipeline.align`` does, with the core functions."""
+    """What the server's ``IngestPipeline.align`` (:mod:`sogm_service.service.server.pipeline`)
+    does, with the core functions."""
     window = match_window(g, params)
     if LAYER not in tiled.layers:
         return None

@@ -290,22 +290,13 @@ def run_supercell_evaluation(
     return EvaluationResult(out, rows, text, files, chosen, time.time() - t0)
 
 
-def _add_supercells_options(p: argparse.ArgumentParser) -> None:
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("eval-supercells"),
                    help="output folder (default %(default)s)")
     p.add_argument("--scenes", type=int, default=4, help="number of scenes (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first scene (default 0)")
     p.add_argument("--quick", action="store_true",
                    help="3 superpixel counts and minimal parameter grids")
-
-
-def add_eval_parser(subparsers: Any) -> argparse.ArgumentParser:
-    """Register ``eval supercells`` on the top-level ``sogm-service`` subparsers."""
-    ev = subparsers.add_parser("eval", help="the paper's evaluation")
-    sub = ev.add_subparsers(dest="eval_what", required=True)
-    _add_supercells_options(sub.add_parser(
-        "supercells", help="SEVDS vs SEEDS/SLIC/SLICO/LSC on simulated table-top SOGMs"))
-    return ev
 
 
 def run_eval(args: argparse.Namespace) -> int:
@@ -318,15 +309,3 @@ def run_eval(args: argparse.Namespace) -> int:
     print(result.markdown)
     print(f"wrote {len(result.files)} files to {result.out_dir} in {result.seconds:.0f} s")
     return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``sogm-service eval ...`` when the CLI delegates the rest of the command line here."""
-    parser = argparse.ArgumentParser(prog="sogm-service")
-    add_eval_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["eval", *(sys.argv[1:] if argv is None else argv)])
-    return run_eval(args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -225,7 +225,7 @@ class DirectoryStore:
         return None if got is None else got[1]
 
     def loader(self, i: int, j: int) -> LoaderResult | None:
-        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiles.Loader`."""
+        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiletypes.Loader`."""
         tile = self.load(i, j)
         return None if tile is None else tile.as_loader_result()
 

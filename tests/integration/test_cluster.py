@@ -535,7 +535,7 @@ def test_a_joiner_replays_only_isms_after_the_marks_of_an_evicted_restarted_owne
         assert held == {KEYS[0]: (6.0, 1006), KEYS[1]: (5.0, 1005)}
     assert _planes(joined) == _planes(reference)
 
-    # What the marks prevent: the copy without them (as before they were stored) replays all
+    # What the marks prevent: a copy without them replays all
     # four journaled ISMs, and 3 and 4 end up fused twice.
     keep, _ = replay_plan(journal, {})
     assert len(keep) == 4

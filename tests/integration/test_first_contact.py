@@ -240,7 +240,8 @@ def test_a_stopped_server_leaves_no_warm_up_child(tmp_path: Path) -> None:
 
 def test_read_only_install_imports_and_runs_the_kernels(tmp_path: Path) -> None:
     """In a process whose package directory cannot be written and whose home is unusable,
-    the kernels still load (the decorator used to fail: no locator available)."""
+    the kernels still load (numba's cache decorator finds no locator there: the cache falls
+    back to a writable directory)."""
     code = ("import sogm_service.core.sevds.numba_cache as m, pathlib, os;"
             "m._HERE = pathlib.Path('/proc/self');"
             "from sogm_service.core.sevds.segment import warm_up; warm_up();"

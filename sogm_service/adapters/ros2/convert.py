@@ -1,6 +1,6 @@
 """ROS 2 messages <-> this project's ISMs, grids and poses (pure, no zenoh).
 
-Field mapping of an incoming ``nav_msgs/msg/OccupancyGrid`` (``shared/ros2-rmw_zenoh.md``):
+Field mapping of an incoming ``nav_msgs/msg/OccupancyGrid`` (docs/ros2.md):
 frame <- ``header.frame_id`` (a ROS 1 style leading ``/`` dropped); stamp <- ``header.stamp``;
 resolution <- ``info.resolution``, a float32 on the wire, taken as the shortest decimal that
 is the same float32 (0.0500000007 -> 0.05, so a grid at the map's resolution is not resampled);

@@ -1,8 +1,8 @@
 """rmw_zenoh key expressions, liveliness tokens, type names and hashes, QoS strings (pure).
 
 The formats are those of rmw_zenoh's upstream releases (Jazzy 0.2.x, Kilted 0.6.x, Rolling
-0.12.x; Humble 0.1.x writes ``TypeHashNotSupported`` in place of the hash), as summarised in
-``shared/ros2-rmw_zenoh.md``:
+0.12.x; Humble 0.1.x writes ``TypeHashNotSupported`` in place of the hash), as rmw_zenoh's
+design document describes them:
 
 * data key of a topic: ``<domain>/<topic without outer '/'>/<dds type name>/<type hash>``;
 * service key: the same with the service's type name and hash (not its Request/Response's);

@@ -115,5 +115,5 @@ def planes_of(ids: list[int], stack: npt.NDArray[np.int16],
         if plane.any():
             planes[lid] = plane
         else:
-            planes.pop(lid, None)  # a repeated name: the last one counts, as it did
+            planes.pop(lid, None)  # a repeated name: the last one counts
     return planes

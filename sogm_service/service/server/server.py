@@ -136,7 +136,7 @@ class MapServer:
         session = self._session  # rejection reports go out with their declared encoding
         self.outcomes.attach(lambda key, payload: session.put(key, payload, encoding=MSGPACK))
         # Last: the token says "ready", so a client that waits for it finds every subscriber
-        # and queryable declared (the ack queryable once came after it).
+        # and queryable declared, the ack queryable included.
         self._declared.append(
             self._session.liveliness().declare_token(self.keys.server_token(self.server_id)))
         self._start_warm_up()

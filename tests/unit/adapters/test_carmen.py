@@ -221,7 +221,7 @@ def test_intel_log_line_types() -> None:
     assert sum(1 for _ in read_carmen(INTEL_LOG, stats=stats)) == 910
     assert stats.types == {"FLASER": 910, "NEFF": 910, "ODOM": 14541, "PARAM": 2, "comment": 2}
     assert stats.skipped == 14541 + 910 + 2 + 2 and stats.malformed == 0
-    # 180 beams: CARMEN's 179 deg, from -90 deg (as before: the Intel map does not move).
+    # 180 beams: CARMEN's 179 deg, from -90 deg (the Intel log's FLASER convention).
     assert carmen_angles(180)[0] == pytest.approx(-math.pi / 2)
 
 

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from sogm_service.apps import cli
 from sogm_service.eval import scenes
 from sogm_service.eval import segmentation as ev
 
@@ -97,11 +98,11 @@ def test_tuning_keeps_the_best_parameter_set(result: ev.EvaluationResult) -> Non
     assert result.chosen[("SEVDS-E", 8)] == grid[int(np.argmin(scores))]
 
 
-def test_cli_parser_and_main(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_cli_parser_and_main(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                             capsys: pytest.CaptureFixture[str]) -> None:
     parser = argparse.ArgumentParser()
-    ev.add_eval_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["eval", "supercells", "--out", str(tmp_path), "--scenes", "2",
-                              "--seed", "5", "--quick"])
+    ev.add_arguments(parser)
+    args = parser.parse_args(["--out", str(tmp_path), "--scenes", "2", "--seed", "5", "--quick"])
     assert (args.out, args.scenes, args.seed, args.quick) == (tmp_path, 2, 5, True)
     calls = []
 
@@ -110,8 +111,10 @@ def test_cli_parser_and_main(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
         return ev.EvaluationResult(Path(out), [], "table")
 
     monkeypatch.setattr(ev, "run_supercell_evaluation", fake_run)
-    assert ev.main(["supercells", "--out", str(tmp_path), "--scenes", "3"]) == 0
+    assert cli.main(["eval", "supercells", "--out", str(tmp_path), "--scenes", "3"]) == 0
     assert calls[0][1]["scenes"] == 3 and calls[0][1]["quick"] is False
-    assert ev.main(["supercells", "--scenes", "0"]) == 2
-    with pytest.raises(SystemExit):
-        ev.main(["nothing"])
+    assert cli.main(["eval", "supercells", "--scenes", "0"]) == 2
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["eval", "nothing"])
+    assert refused.value.code == 2
+    assert "sogm-service:" in capsys.readouterr().err

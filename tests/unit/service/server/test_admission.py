@@ -81,9 +81,9 @@ def test_isms_that_add_no_plane_are_accepted_over_the_budget(setup: tuple[TiledM
 
 
 def test_heavy_queries_beyond_the_bound_are_busy_with_a_retry_hint() -> None:
-    """The bound itself, in one process (through a server, Zenoh hands one queryable's queries
-    to its callback one at a time today, so a second heavy query cannot overlap a first:
-    measured, NOTES-bounds.md; the bound matters once queries run on worker threads)."""
+    """The bound itself, in one process: through a server, Zenoh hands one queryable's queries
+    to its callback one at a time, so a second heavy query cannot overlap a first there; the
+    bound matters once queries run on worker threads."""
     config = ServiceConfig(limits=LimitSettings(max_heavy_queries=2, busy_retry_s=0.5))
     stats = Stats()
     admission = Admission(config, stats)
