@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 if TYPE_CHECKING:  # only for annotations: drawing needs no Zenoh
     from sogm_service.client.results import GridResult
-    from sogm_service.wire.messages import SupercellReply
+    from sogm_service.wire.queries import SupercellReply
 
 UNKNOWN_BGR = (150, 110, 70)
 _UNKNOWN_TOL = 0.5 / 255.0

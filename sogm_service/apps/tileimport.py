@@ -11,8 +11,8 @@ from typing import TextIO
 
 from sogm_service.apps.options import UsageError
 from sogm_service.store.directory import DirectoryStore, lock_directory
-from sogm_service.store.format import SUFFIX, MapKey, TileHeader, tile_from_bytes
 from sogm_service.wire.errors import TileFormatError
+from sogm_service.wire.tilefile import SUFFIX, MapKey, TileHeader, tile_from_bytes
 
 
 def cmd_import(args: argparse.Namespace, out: TextIO) -> int:

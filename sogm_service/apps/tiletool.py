@@ -49,15 +49,9 @@ from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.store.directory import DirectoryStore
-from sogm_service.store.format import (
-    SUFFIX,
-    MapKey,
-    StoredTile,
-    TileHeader,
-    read_tile_file,
-    read_tile_header,
-)
+from sogm_service.store.format import read_tile_file, read_tile_header
 from sogm_service.wire.errors import StoreLockedError, TileFormatError
+from sogm_service.wire.tilefile import SUFFIX, MapKey, StoredTile, TileHeader
 
 _CELL_EPS = 1e-9
 MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an export in memory

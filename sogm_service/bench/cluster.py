@@ -144,7 +144,7 @@ def _timed(client: MapClient, member: str, window: dict[str, Any], repeats: int
     """Sub-map latencies (reply decoded) of one member, asked under its own key (which member
     a plain get reaches is Zenoh's routing choice, not the endpoint's)."""
     from sogm_service.wire import codec
-    from sogm_service.wire.messages import GridReply
+    from sogm_service.wire.queries import GridReply
 
     key = MapKeys(client.prefix, client.map_name).member(member, "submap")
     out = []

@@ -28,7 +28,7 @@ from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import open_session, wait_listening
 from sogm_service.core.geometry import Pose2D
 from sogm_service.service.server import pipeline as ingest
-from sogm_service.wire.messages import StatsReply
+from sogm_service.wire.queries import StatsReply
 
 PY = sys.executable
 
@@ -223,7 +223,7 @@ def submap_breakdown(repeats: int) -> dict[str, float]:
     from sogm_service.core.geometry import window_geometry
     from sogm_service.service.server import queries
     from sogm_service.wire import codec
-    from sogm_service.wire.messages import SubmapRequest
+    from sogm_service.wire.queries import SubmapRequest
 
     tiled = fresh_map()
     for k in range(4):

@@ -49,19 +49,15 @@ from sogm_service.wire.errors import (
 from sogm_service.wire.keys import MapKeys, last_chunk, pose_key, tile_of_key
 from sogm_service.wire.limits import MAX_REPLY_BYTES, SUPERCELLS_TIMEOUT_S
 from sogm_service.wire.messages import (
-    FusedReply,
     GeodeticFix,
-    GridReply,
-    InfoReply,
     IsmAck,
     IsmMessage,
     PoseMessage,
     RejectionReport,
     RobotTilesReply,
-    StatsReply,
-    SupercellReply,
     TileEvent,
 )
+from sogm_service.wire.queries import FusedReply, GridReply, InfoReply, StatsReply, SupercellReply
 
 M = TypeVar("M", bound=BaseModel)
 

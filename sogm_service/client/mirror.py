@@ -33,7 +33,7 @@ from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.wire import codec
 from sogm_service.wire.errors import QueryTimeoutError
 from sogm_service.wire.keys import MapKeys, tile_of_key
-from sogm_service.wire.messages import InfoReply, TilesChangedRequest
+from sogm_service.wire.queries import InfoReply, TilesChangedRequest
 from sogm_service.wire.tilefile import Expectation, tile_from_bytes
 
 Fixed = npt.NDArray[np.int16]

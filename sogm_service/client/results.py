@@ -15,7 +15,8 @@ from sogm_service.core import logodds
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError, ServiceError
-from sogm_service.wire.messages import ErrorReply, FusedReply, GridReply
+from sogm_service.wire.messages import ErrorReply
+from sogm_service.wire.queries import FusedReply, GridReply
 
 
 @dataclass(frozen=True)

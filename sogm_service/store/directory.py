@@ -27,7 +27,10 @@ from typing import Final
 
 from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
 from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
-from sogm_service.store.format import (
+from sogm_service.store.format import read_tile_header
+from sogm_service.store.protocol import StoreProblem, TileFileInfo
+from sogm_service.wire.errors import StoreLockedError, TileFormatError
+from sogm_service.wire.tilefile import (
     DEFAULT_LEVEL,
     SUFFIX,
     Expectation,
@@ -36,14 +39,11 @@ from sogm_service.store.format import (
     TileHeader,
     _file_stem,
     check_expectation,
-    read_tile_header,
     tile_file_name,
     tile_from_bytes,
     tile_header,
     tile_to_bytes,
 )
-from sogm_service.store.protocol import StoreProblem, TileFileInfo
-from sogm_service.wire.errors import StoreLockedError, TileFormatError
 
 log = logging.getLogger(__name__)
 

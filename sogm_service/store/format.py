@@ -1,8 +1,7 @@
 """Tile files of the store: a file's header read and checked alone (the store's index), and a
 whole file read and validated.  The format itself (header, encoding, validation of bytes, file
 names) lives in :mod:`sogm_service.wire.tilefile`, the wire format of ``tiles/<i>/<j>`` too, so
-that a client decodes tiles without the store; its names are re-exported here for the store's
-modules and tools.
+that a client decodes tiles without the store.
 """
 
 from __future__ import annotations
@@ -13,60 +12,13 @@ from pathlib import Path
 from sogm_service.wire.errors import TileFormatError
 from sogm_service.wire.tilefile import (
     _PREFIX,
-    DEFAULT_LEVEL,
-    FORMAT_VERSION,
-    MAGIC,
-    MAX_APPLIED,
-    MAX_APPLIED_KEY,
-    SUFFIX,
     Expectation,
-    Fixed,
-    MapKey,
     StoredTile,
     TileHeader,
-    _applied_field,
-    _file_stem,
-    bounded_marks,
-    check_expectation,
-    check_stack,
-    marks_of,
     parse_header,
     parse_prefix,
-    resolution_token,
-    tile_file_name,
     tile_from_bytes,
-    tile_header,
-    tile_to_bytes,
 )
-
-__all__ = [
-    "DEFAULT_LEVEL",
-    "FORMAT_VERSION",
-    "MAGIC",
-    "MAX_APPLIED",
-    "MAX_APPLIED_KEY",
-    "SUFFIX",
-    "Expectation",
-    "Fixed",
-    "MapKey",
-    "StoredTile",
-    "TileHeader",
-    "_applied_field",
-    "_file_stem",
-    "bounded_marks",
-    "check_expectation",
-    "check_stack",
-    "marks_of",
-    "parse_header",
-    "parse_prefix",
-    "read_tile_file",
-    "read_tile_header",
-    "resolution_token",
-    "tile_file_name",
-    "tile_from_bytes",
-    "tile_header",
-    "tile_to_bytes",
-]
 
 
 def read_tile_header(path: Path) -> tuple[TileHeader, int]:

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Protocol
 
 from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
-from sogm_service.store.format import Expectation, Fixed, StoredTile, TileHeader
+from sogm_service.wire.tilefile import Expectation, Fixed, StoredTile, TileHeader
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
-from sogm_service.store.format import Fixed, check_stack
 from sogm_service.store.protocol import TileStore
+from sogm_service.wire.tilefile import Fixed, check_stack
 
 log = logging.getLogger(__name__)
 

@@ -15,11 +15,20 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
+from sogm_service.wire import messages as m
+from sogm_service.wire import queries as q
 from sogm_service.wire.errors import DECODE_CODES, DecodeError
 from sogm_service.wire.limits import MAX_MSGPACK_STR, MAX_PAYLOAD_BYTES
-from sogm_service.wire.messages import SCHEMA_MODELS, SCHEMA_VERSION
+from sogm_service.wire.messages import SCHEMA_VERSION
 
 M = TypeVar("M", bound=BaseModel)
+
+SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
+    m.IsmMessage, m.PoseMessage, q.SubmapRequest, q.FusedRequest, q.SupercellRequest,
+    q.GridReply, q.FusedReply, q.SupercellReply, m.TileEvent, m.RobotTilesReply, m.MatchReport,
+    q.InfoReply, q.StatsReply, m.ErrorReply, m.RejectionReport, m.IsmAck, q.TilesChangedRequest,
+)
+"""Every wire model with a JSON Schema in ``schemas/`` (``sogm-service schemas``)."""
 
 # pydantic's built-in error types -> our reject codes.
 _PYDANTIC_CODES = {

@@ -17,6 +17,8 @@ from sogm_service.client.session import free_tcp_endpoint
 from sogm_service.store.directory import DirectoryStore
 from tests.conftest import start_server
 
+pytestmark = pytest.mark.integration
+
 MAIN = "from sogm_service.apps.cli import main; raise SystemExit(main(sys.argv[1:]))"
 MARKUP = re.compile(r"``|:(mod|func|class|meth|attr):|\*\*\w")  # RST roles, bold; not pose/**
 

@@ -35,7 +35,8 @@ from sogm_service.service.server.stats import Stats
 from sogm_service.wire import codec
 from sogm_service.wire.errors import DecodeError
 from sogm_service.wire.keys import MapKeys
-from sogm_service.wire.messages import ErrorReply, GridReply, InfoReply
+from sogm_service.wire.messages import ErrorReply
+from sogm_service.wire.queries import GridReply, InfoReply
 from tests.conftest import ServerProcess, start_server, wait_until
 from tests.unit.service.cluster.test_handover import KEYS, T, numbered_jobs
 

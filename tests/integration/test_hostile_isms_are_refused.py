@@ -17,6 +17,8 @@ from sogm_service.wire.errors import ISM_CODES, POSE_CODES
 from sogm_service.wire.messages import IsmMessage, PoseModel
 from tests.conftest import ServerProcess, start_server, wait_processed, wait_until
 
+pytestmark = pytest.mark.integration
+
 RSS_BOUND_MB = 64
 """The most a burst of hostile input may grow the server's RSS (the issue saw 3.57 GB from one
 64 km ISM and 1 GB from 8 ISMs of 961 tiles each)."""

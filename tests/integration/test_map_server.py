@@ -18,13 +18,8 @@ from sogm_service.service.server import pipeline as ingest
 from sogm_service.service.server import queries
 from sogm_service.wire import codec
 from sogm_service.wire.errors import QueryTimeoutError, ServiceError
-from sogm_service.wire.messages import (
-    FusedRequest,
-    IsmMessage,
-    PoseMessage,
-    PoseModel,
-    SubmapRequest,
-)
+from sogm_service.wire.messages import IsmMessage, PoseMessage, PoseModel
+from sogm_service.wire.queries import FusedRequest, SubmapRequest
 from tests.conftest import ServerProcess, start_server, wait_processed, wait_until
 from tests.unit.core.test_logodds import HI, LO
 from tests.unit.wire.test_codec import ism_payload

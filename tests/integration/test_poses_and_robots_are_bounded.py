@@ -7,12 +7,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import zenoh
 
 from sogm_service.wire import codec
 from sogm_service.wire.messages import PoseMessage
 from tests.conftest import start_server, wait_until
 from tests.integration.test_hostile_isms_are_refused import RSS_BOUND_MB, baseline_rss_mb, rss_mb
+
+pytestmark = pytest.mark.integration
 
 ROBOTS = 200
 POSES_PER_ROBOT = 50

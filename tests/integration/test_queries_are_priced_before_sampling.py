@@ -16,6 +16,8 @@ from sogm_service.wire.errors import QUERY_CODES, ServiceError
 from tests.conftest import ServerProcess, start_server, wait_processed
 from tests.integration.test_hostile_isms_are_refused import RSS_BOUND_MB, baseline_rss_mb, rss_mb
 
+pytestmark = pytest.mark.integration
+
 SPECIFIC = {"bad_parameter", "window_too_large", "out_of_world", "reply_too_large",
             "unknown_layer"}
 

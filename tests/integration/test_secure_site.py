@@ -40,7 +40,8 @@ from sogm_service.apps.certs import Pki, init_pki, load_ca, make_ca, make_identi
 from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import free_tcp_endpoint, wait_listening
 from sogm_service.wire import codec
-from sogm_service.wire.messages import GridReply, PoseMessage
+from sogm_service.wire.messages import PoseMessage
+from sogm_service.wire.queries import GridReply
 from tests.unit.apps.test_certs import config_dict
 
 pytestmark = pytest.mark.integration

@@ -17,6 +17,8 @@ from sogm_service.client.session import loopback_settings, open_session
 from sogm_service.wire.tilefile import tile_from_bytes
 from tests.conftest import ServerProcess, start_server, wait_until
 
+pytestmark = pytest.mark.integration
+
 RES, T = 0.1, 64
 SPAN = RES * T  # 6.4 m
 KEY = "ism/r1/laser/obstacle"

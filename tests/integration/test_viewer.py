@@ -31,6 +31,8 @@ from sogm_service.core.geometry import Pose2D
 from tests.conftest import ServerProcess, start_server, wait_until
 from tests.unit.apps.viewer.test_tiles import CHAIR, OBSTACLE, RES
 
+pytestmark = pytest.mark.integration
+
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path(shutil.which("chromedriver") or "/usr/bin/chromedriver")
 UNKNOWN_RGB = (70, 110, 150)  # apps/render.py UNKNOWN_BGR, as the page shows it

@@ -45,7 +45,8 @@ from sogm_service.core import logodds
 from sogm_service.core.geodesy import LocalTangentPlane
 from sogm_service.service.config import ZenohSettings
 from sogm_service.wire.errors import ClientError
-from sogm_service.wire.messages import InfoReply, PoseMessage, StatsReply, TileEvent
+from sogm_service.wire.messages import PoseMessage, TileEvent
+from sogm_service.wire.queries import InfoReply, StatsReply
 
 log = logging.getLogger("sogm_service.apps.viewer")
 

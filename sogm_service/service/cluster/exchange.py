@@ -21,9 +21,9 @@ from sogm_service.core.map.tile import Tile, planes_of
 from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.cluster.handover import content_digest
 from sogm_service.service.cluster.view import ClusterView
-from sogm_service.store.format import TileHeader, tile_from_bytes
 from sogm_service.wire import encodings
 from sogm_service.wire.errors import QueryError, TileFormatError
+from sogm_service.wire.tilefile import TileHeader, tile_from_bytes
 
 log = logging.getLogger(__name__)
 MSGPACK = zenoh.Encoding(encodings.MSGPACK)  # a member's answers are msgpack maps

@@ -20,16 +20,16 @@ from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.config import MapSettings, ServiceConfig
 from sogm_service.service.server.checkpoints import Checkpointer
 from sogm_service.service.server.stats import Stats
-from sogm_service.store.format import (
+from sogm_service.wire import encodings
+from sogm_service.wire.errors import TileFormatError
+from sogm_service.wire.keys import tile_of_key
+from sogm_service.wire.tilefile import (
     Expectation,
     marks_of,
     tile_from_bytes,
     tile_header,
     tile_to_bytes,
 )
-from sogm_service.wire import encodings
-from sogm_service.wire.errors import TileFormatError
-from sogm_service.wire.keys import tile_of_key
 
 log = logging.getLogger(__name__)
 

@@ -33,12 +33,8 @@ from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server.stats import Stats
 from sogm_service.wire.errors import BusyError, IsmRejectedError, QueryError
-from sogm_service.wire.messages import (
-    IsmMessage,
-    SupercellRequest,
-    TilesChangedRequest,
-    WindowRequest,
-)
+from sogm_service.wire.messages import IsmMessage
+from sogm_service.wire.queries import SupercellRequest, TilesChangedRequest, WindowRequest
 
 if TYPE_CHECKING:
     from sogm_service.service.server.fleet import FleetTracker

@@ -24,17 +24,16 @@ from sogm_service.wire import compression as zstd
 from sogm_service.wire.codec import unpack, validate
 from sogm_service.wire.compression import Compression
 from sogm_service.wire.errors import DecodeError, QueryError
-from sogm_service.wire.messages import (
+from sogm_service.wire.messages import PoseModel, WireArray
+from sogm_service.wire.queries import (
     FusedReply,
     FusedRequest,
     GridReply,
-    PoseModel,
     SubmapRequest,
     SupercellNode,
     SupercellReply,
     SupercellRequest,
     WindowRequest,
-    WireArray,
 )
 
 if TYPE_CHECKING:

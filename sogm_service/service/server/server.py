@@ -52,15 +52,13 @@ from sogm_service.wire import codec, encodings
 from sogm_service.wire.errors import QueryError, SogmError
 from sogm_service.wire.keys import QUERYABLES, last_chunk
 from sogm_service.wire.limits import WARMUP_WAIT_S
-from sogm_service.wire.messages import (
-    ErrorReply,
+from sogm_service.wire.messages import ErrorReply, PoseMessage, TileEvent
+from sogm_service.wire.queries import (
     FusedRequest,
     InfoReply,
-    PoseMessage,
     StatsReply,
     SubmapRequest,
     SupercellRequest,
-    TileEvent,
 )
 
 log = logging.getLogger(__name__)

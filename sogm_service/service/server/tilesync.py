@@ -1,7 +1,7 @@
 """``<prefix>/<map>/tiles/changed``: the tiles of a region whose version differs from the one a
 client holds, so an edge device keeps its neighbourhood without downloading it again.
 
-A request (:class:`~sogm_service.wire.messages.TilesChangedRequest`, a msgpack body and/or
+A request (:class:`~sogm_service.wire.queries.TilesChangedRequest`, a msgpack body and/or
 selector parameters) names the region, a box of the map frame or tile index bounds, and the
 versions the client holds.  Admission prices it from those numbers alone
 (:meth:`~sogm_service.service.server.admission.Admission.check_region`: the region's tiles and
@@ -36,7 +36,7 @@ from sogm_service.wire import encodings
 from sogm_service.wire.codec import unpack, validate
 from sogm_service.wire.errors import DecodeError, QueryError
 from sogm_service.wire.keys import MapKeys
-from sogm_service.wire.messages import TilesChangedRequest
+from sogm_service.wire.queries import TilesChangedRequest
 
 TILE = zenoh.Encoding(encodings.TILE)
 _BYTES_PER_HELD = 32

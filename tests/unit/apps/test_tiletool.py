@@ -15,7 +15,7 @@ from sogm_service.apps import render
 from sogm_service.apps.tiletool import add_tiles_parser, build_parser, main, run_tiles
 from sogm_service.core import logodds
 from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
-from sogm_service.store.format import tile_file_name
+from sogm_service.wire.tilefile import tile_file_name
 
 T = 16
 RES = 0.1  # 1.6 m tiles

@@ -14,12 +14,8 @@ import numpy as np
 import pytest
 
 from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
-from sogm_service.store.format import (
-    TileHeader,
-    tile_file_name,
-    tile_to_bytes,
-)
 from sogm_service.wire.errors import StoreLockedError
+from sogm_service.wire.tilefile import TileHeader, tile_file_name, tile_to_bytes
 
 T = 32  # small tiles keep the suite fast; one test uses the real 256
 RES = 0.05

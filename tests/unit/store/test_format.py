@@ -19,7 +19,8 @@ from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tilemanager import TileManager
 from sogm_service.core.map.tiletypes import Mark
 from sogm_service.store.directory import QUARANTINE_DIR, DirectoryStore
-from sogm_service.store.format import (
+from sogm_service.wire.errors import TileFormatError
+from sogm_service.wire.tilefile import (
     MAGIC,
     MAX_APPLIED,
     MAX_APPLIED_KEY,
@@ -29,7 +30,6 @@ from sogm_service.store.format import (
     tile_header,
     tile_to_bytes,
 )
-from sogm_service.wire.errors import TileFormatError
 from tests.unit.store.test_directory import LAYERS, RES, T, header, open_store, stack
 
 
@@ -283,7 +283,7 @@ def test_a_malformed_applied_field_is_refused(what: str, bad: Any) -> None:
 def test_non_string_keys_cannot_reach_the_reader_but_are_refused() -> None:
     """JSON object keys are strings: a header can only say ``{"1": ...}``, which is a key.  The
     check stands for readers given other JSON (a number key is refused)."""
-    from sogm_service.store import format as fmt
+    from sogm_service.wire import tilefile as fmt
     with pytest.raises(TileFormatError, match="applied"):
         fmt._applied_field({"applied": {1: [1.0, 2]}})
 

@@ -17,16 +17,11 @@ from hypothesis import strategies as st
 from pydantic import BaseModel
 
 from sogm_service.wire import codec, limits
-from sogm_service.wire.codec import DecodeError
+from sogm_service.wire.codec import SCHEMA_MODELS, DecodeError
 from sogm_service.wire.errors import DECODE_CODES
 from sogm_service.wire.messages import (
-    SCHEMA_MODELS,
     ErrorReply,
-    FusedReply,
-    FusedRequest,
     GeodeticFix,
-    GridReply,
-    InfoReply,
     IsmAck,
     IsmMessage,
     MatchReport,
@@ -34,14 +29,20 @@ from sogm_service.wire.messages import (
     PoseModel,
     RejectionReport,
     RobotTilesReply,
+    TileEvent,
+    WireArray,
+)
+from sogm_service.wire.queries import (
+    FusedReply,
+    FusedRequest,
+    GridReply,
+    InfoReply,
     StatsReply,
     SubmapRequest,
     SupercellNode,
     SupercellReply,
     SupercellRequest,
-    TileEvent,
     TilesChangedRequest,
-    WireArray,
 )
 
 FUZZ = settings(max_examples=120, deadline=None, derandomize=True,

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 from sogm_service.wire import codec
-from sogm_service.wire.messages import SCHEMA_MODELS
+from sogm_service.wire.codec import SCHEMA_MODELS
 
 SCHEMAS = Path(__file__).resolve().parents[3] / "schemas"
 

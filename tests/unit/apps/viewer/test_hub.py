@@ -10,7 +10,8 @@ from tests.unit.apps.viewer.test_tiles import RES
 def test_cursor_latitude_longitude_follow_the_maps_datum() -> None:
     from sogm_service.apps.viewer.hub import HubSettings, MapHub
     from sogm_service.core.geodesy import LocalTangentPlane
-    from sogm_service.wire.messages import GeodeticFix, InfoReply
+    from sogm_service.wire.messages import GeodeticFix
+    from sogm_service.wire.queries import InfoReply
 
     datum = GeodeticFix(latitude=48.2, longitude=16.37, altitude=0.0)
     info = InfoReply(map="m", frame="map", server_id="s", resolution=RES, tile_size=256,

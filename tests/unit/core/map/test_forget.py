@@ -22,16 +22,16 @@ from sogm_service.core.map import forget
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
 from sogm_service.store.directory import DirectoryStore
-from sogm_service.store.format import (
+from sogm_service.store.format import read_tile_file
+from sogm_service.wire.errors import TileFormatError
+from sogm_service.wire.tilefile import (
     FORMAT_VERSION,
     Expectation,
     parse_header,
-    read_tile_file,
     tile_from_bytes,
     tile_header,
     tile_to_bytes,
 )
-from sogm_service.wire.errors import TileFormatError
 from tests.unit.store.test_format import GOLDEN
 
 H = 10.0  # half-life (s) of "people"

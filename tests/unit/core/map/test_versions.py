@@ -13,9 +13,9 @@ from sogm_service.core.map.tile import TileSnapshot
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import Loader
 from sogm_service.store.directory import DirectoryStore
-from sogm_service.store.format import Expectation, tile_from_bytes, tile_header, tile_to_bytes
 from sogm_service.wire import tilefile
 from sogm_service.wire.errors import TileFormatError
+from sogm_service.wire.tilefile import Expectation, tile_from_bytes, tile_header, tile_to_bytes
 
 RES, T = 0.05, 16
 SPAN = RES * T
