@@ -4,7 +4,6 @@ with its code and counted, the map unchanged."""
 
 from __future__ import annotations
 
-import json
 import threading
 
 import msgpack
@@ -17,6 +16,7 @@ from sogm_service.core.geometry import Pose2D
 from sogm_service.wire import codec
 from sogm_service.wire.messages import IsmMessage, PoseModel
 from tests.conftest import ServerProcess, wait_processed, wait_until
+from tests.helpers import raw_session
 
 pytestmark = pytest.mark.integration
 
@@ -32,12 +32,6 @@ def _walls(seed: int) -> np.ndarray:
     return grid
 
 
-def _raw_session(endpoint: str) -> zenoh.Session:
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps("client"))
-    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(config)
 
 
 def test_compressed_isms_fuse_as_raw_ones_for_a_fraction_of_the_bytes(
@@ -50,7 +44,7 @@ def test_compressed_isms_fuse_as_raw_ones_for_a_fraction_of_the_bytes(
             received["raw" if "/raw/" in str(sample.key_expr) else "zstd"] += len(
                 sample.payload.to_bytes())
 
-    watcher = _raw_session(server.endpoint)
+    watcher = raw_session(server.endpoint)
     try:
         sub = watcher.declare_subscriber("ism/**", count)
         with server.client() as robot:
@@ -88,7 +82,7 @@ def test_replies_are_compressed_when_asked_and_decode_to_the_same_reply(
         counters = robot.stats().counters
         assert counters.get("replies_zstd", 0) >= 1 and counters.get("replies_raw", 0) >= 1
 
-    raw = _raw_session(server.endpoint)
+    raw = raw_session(server.endpoint)
     try:
         selector = "sogm/default/submap?x=6;y=6;width=12;height=12;resolution=0.05"
         (as_is,) = list(raw.get(selector, timeout=10.0))

@@ -6,7 +6,6 @@ encoding a generic Zenoh tool sees ``zenoh/bytes`` and cannot tell what it holds
 
 from __future__ import annotations
 
-import json
 import re
 import subprocess
 import sys
@@ -19,6 +18,7 @@ import pytest
 import zenoh
 
 from tests.conftest import ServerProcess, wait_until
+from tests.helpers import raw_session
 
 pytestmark = pytest.mark.integration
 
@@ -26,12 +26,6 @@ MSGPACK = "application/msgpack"
 TILE = "application/x-sogm-tile"
 
 
-def _raw_session(endpoint: str) -> zenoh.Session:
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps("client"))
-    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(config)
 
 
 def _replies(session: zenoh.Session, selector: str) -> list[zenoh.Reply]:
@@ -50,7 +44,7 @@ def test_replies_errors_events_and_tiles_declare_their_encoding(server: ServerPr
                 into.append(sample)
         return on_sample
 
-    raw = _raw_session(server.endpoint)
+    raw = raw_session(server.endpoint)
     try:
         subs = [raw.declare_subscriber("sogm/default/events/tile", keep(events)),
                 raw.declare_subscriber("sogm/default/rejections/**", keep(rejections)),

@@ -189,13 +189,7 @@ def grid_fields(m: Any, max_cells: int = DEFAULT_MAX_CELLS) -> OccupancyGridFiel
     pos, ori = _vec(info.origin.position), _quat(info.origin.orientation)
     _finite("the grid origin", *pos, *ori)
     _finite("the grid resolution", res)
-    if width * height > max_cells:
-        raise Ros2DecodeError("too_large", f"{width}x{height} cells exceed the limit of "
-                                           f"{max_cells}")
-    data = np.asarray(m.data, dtype=np.int8)
-    if data.size != width * height:
-        raise Ros2DecodeError("data_length", f"data has {data.size} cells; {width}x{height} "
-                                             f"need {width * height}")
+    data = _grid_cells(m.data, width, height, max_cells)
     return OccupancyGridFields(
         frame=str(m.header.frame_id), stamp=_stamp(m.header.stamp), resolution=res,
         width=width, height=height, position=pos, orientation=ori,
@@ -239,18 +233,24 @@ def encode_grid_update(u: GridUpdateFields) -> bytes:
         height=int(u.height), data=data), OCCUPANCY_GRID_UPDATE)
 
 
+def _grid_cells(cells: object, width: int, height: int, max_cells: int) -> npt.NDArray[np.int8]:
+    """A grid's int8 cells, bounded by ``max_cells`` and checked against its size."""
+    if width * height > max_cells:
+        raise Ros2DecodeError("too_large", f"{width}x{height} cells exceed the limit of "
+                                           f"{max_cells}")
+    data = np.asarray(cells, dtype=np.int8)
+    if data.size != width * height:
+        raise Ros2DecodeError("data_length", f"data has {data.size} cells; {width}x{height} "
+                                             f"need {width * height}")
+    return data
+
+
 def decode_grid_update(payload: bytes | bytearray | memoryview, *,
                        max_bytes: int = DEFAULT_MAX_PAYLOAD,
                        max_cells: int = DEFAULT_MAX_CELLS) -> GridUpdateFields:
     m = _deserialize(payload, OCCUPANCY_GRID_UPDATE, max_bytes)
     width, height = int(m.width), int(m.height)
-    if width * height > max_cells:
-        raise Ros2DecodeError("too_large", f"{width}x{height} cells exceed the limit of "
-                                           f"{max_cells}")
-    data = np.asarray(m.data, dtype=np.int8)
-    if data.size != width * height:
-        raise Ros2DecodeError("data_length", f"data has {data.size} cells; {width}x{height} "
-                                             f"need {width * height}")
+    data = _grid_cells(m.data, width, height, max_cells)
     return GridUpdateFields(str(m.header.frame_id), _stamp(m.header.stamp), int(m.x), int(m.y),
                             width, height, data.reshape(height, width))
 

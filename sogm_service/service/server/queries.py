@@ -39,7 +39,7 @@ from sogm_service.wire.queries import (
 if TYPE_CHECKING:
     from sogm_service.service.server.admission import Admission
 
-R = TypeVar("R", bound=WindowRequest)
+R = TypeVar("R", bound=BaseModel)  # a request model: a window, or the tiles changed
 
 
 def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = None) -> R:

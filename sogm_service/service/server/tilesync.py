@@ -31,10 +31,10 @@ from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.service.server.admission import Admission
 from sogm_service.service.server.checkpoints import Checkpointer
+from sogm_service.service.server.queries import parse_request
 from sogm_service.service.server.stats import Stats
 from sogm_service.wire import encodings
-from sogm_service.wire.codec import unpack, validate
-from sogm_service.wire.errors import DecodeError, QueryError
+from sogm_service.wire.errors import QueryError
 from sogm_service.wire.keys import MapKeys
 from sogm_service.wire.queries import TilesChangedRequest
 
@@ -50,17 +50,7 @@ def parse_changed(params: Mapping[str, str], body: bytes | None,
     if body and len(body) > _BYTES_PER_HELD * max_tiles + 1024:
         raise QueryError("window_too_large", f"the query body has {len(body)} bytes; at most "
                          f"{max_tiles} held versions are accepted", "held")
-    merged: dict[str, object] = {}
-    try:
-        if body:
-            obj = unpack(body)
-            if not isinstance(obj, dict):
-                raise QueryError("bad_parameter", "the query body must be a msgpack map")
-            merged.update(obj)
-        merged.update(params)
-        return validate(TilesChangedRequest, merged)
-    except DecodeError as exc:
-        raise QueryError("bad_parameter", exc.message, exc.parameter) from None
+    return parse_request(TilesChangedRequest, params, body)
 
 
 def held_versions(req: TilesChangedRequest) -> dict[TileIndex, int]:
