@@ -313,9 +313,12 @@ class MapClient:
         return self.offline.flush(timeout)
 
     def settle_offline(self, timeout: float = 2.0) -> int:
-        """Ask the server about the ISMs put just before a route was lost; returns how many it
-        never received (``lost_in_flight`` in :meth:`offline_stats`)."""
-        return self.offline.settle(lambda ism_id: self.ack(ism_id, timeout).status)
+        """Ask the server, within ``timeout`` seconds, about each key's last put and the ISMs
+        put just before a route was lost; those it never received go through the offline
+        policy (each key's newest is sent again, older ones dropped as superseded).  Returns
+        how many are lost for good (``lost_in_flight`` in :meth:`offline_stats`)."""
+        return self.offline.settle(lambda ism_id, budget: self.ack(ism_id, budget).status,
+                                   timeout)
 
     def offline_stats(self) -> OfflineStats:
         """ISMs offered, sent, held for a route and dropped by the offline policy."""

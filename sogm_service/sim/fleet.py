@@ -15,7 +15,8 @@ A robot whose link drops keeps publishing: while its ISM keys have no route to a
 client keeps the latest ISM per key and drops the rest (:mod:`sogm_service.client.offline`),
 and sends what it kept when the route returns.  :class:`FleetStats` counts both, so
 ``isms = isms_sent + isms_dropped``; on closing, each robot waits up to ``flush_s`` for a
-route for what it still holds.
+route for what it still holds, and asks the server's acknowledgements about what may have been
+lost on the way (the newest of each key it never received is sent again).
 
 ISMs travel as ``occupancy_i8`` (nav_msgs 0..100, -1 unknown) by default: one byte a cell and an
 exact "unknown" (``prob_u8`` cannot say 0.5 exactly).  Puts use congestion control BLOCK
@@ -33,7 +34,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -64,7 +65,9 @@ class FleetStats:
     isms_dropped: int = 0  # by the offline policy (superseded, overflow, no route at the end)
     isms_flushed: int = 0  # sent late: held during an outage, then sent when the route returned
     outages: int = 0  # times a robot's ISM key lost its route
-    isms_lost: int = 0  # sent as the link went, never received (the server's acks say so)
+    isms_lost: int = 0  # never received (the server's acks say so), no copy to send again
+    isms_resent: int = 0  # never received as first sent, so sent again (the newest per key)
+    last_ids: dict[str, str] = field(default_factory=dict)  # ISM key -> its newest ISM's id
 
     @property
     def isms_sent(self) -> int:
@@ -124,13 +127,17 @@ class RobotLink:
             robot=self.name)
         stats.isms += 1
         stats.ism_bytes += len(msg.data)
+        if self.client.last_ism_id is not None:
+            stats.last_ids[ism_key(self.name, ism, self.ism_prefix)] = self.client.last_ism_id
 
     def close(self, stats: FleetStats | None = None, flush_s: float = 0.0) -> None:
         """Send what the offline policy still holds (waiting up to ``flush_s`` for a route),
         add its counts to ``stats`` and close the session."""
         try:
-            if flush_s > 0 and self.client.flush_offline(flush_s) == 0:
-                self.client.settle_offline(min(flush_s, 2.0))
+            if flush_s > 0:  # what never arrived is sent again: wait out a silent link
+                deadline = time.monotonic() + flush_s
+                self.client.flush_offline(flush_s)
+                self.client.settle_offline(max(deadline - time.monotonic(), 2.0))
         finally:
             self.client.close()  # drops (and counts) what is still held
             if stats is not None:
@@ -139,6 +146,7 @@ class RobotLink:
                 stats.isms_flushed += offline.flushed
                 stats.outages += offline.outages
                 stats.isms_lost += offline.lost_in_flight
+                stats.isms_resent += offline.resent
 
 
 def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float = 20.0,
