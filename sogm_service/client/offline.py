@@ -194,8 +194,8 @@ class OfflineBuffer:
                     if recent and key not in suspected]
 
     def suspect(self, key: str) -> None:
-        """The key's puts of the last :data:`IN_FLIGHT_S` become suspects (its last one is
-        unknown to the server)."""
+        """The key's puts of the :data:`IN_FLIGHT_S` before its last one become suspects (its
+        last one is unknown to the server)."""
         with self._lock:
             self._suspect(key)
 
@@ -265,8 +265,10 @@ class OfflineBuffer:
         return True
 
     def _suspect(self, key: str) -> None:
-        since = time.monotonic() - IN_FLIGHT_S
-        self._suspects.update({i: key for t, i in self._recent.pop(key, ()) if t >= since})
+        recent = self._recent.pop(key, None)
+        if recent:  # the puts of the lease's span before the last one (or before now)
+            since = min(time.monotonic(), recent[-1][0]) - IN_FLIGHT_S
+            self._suspects.update({i: key for t, i in recent if t >= since})
 
     def _drop_copy(self, key: str) -> None:
         copy = self._copies.pop(key, None)
