@@ -389,7 +389,8 @@ def _print_summary(r: DemoResult, out: Path) -> None:
           f"rejected {r.isms_rejected}; tile switches {r.tile_switches}")
     if r.isms_dropped_offline or r.isms_lost_in_flight:
         print(f"  drop-outs: {r.isms_dropped_offline} ISMs dropped by the offline policy "
-              f"(latest per layer kept), {r.isms_lost_in_flight} lost in flight")
+              f"(the latest per layer kept or sent again), {r.isms_lost_in_flight} lost in "
+              "flight (no copy left to send again)")
     if not r.complete:
         print(f"  incomplete: the server fused {r.isms_fused} of the "
               f"{r.isms_published - r.isms_dropped_offline - r.isms_lost_in_flight} "
