@@ -1,7 +1,8 @@
 """What the server publishes to ROS 2: a region of the map as OccupancyGrids (pure, no zenoh).
 
 :func:`publish_region` chooses the window: around the robots (``robots``: the box of their
-positions plus ``radius_m``) or the whole known map (``known``), on the map's own cell lattice
+positions plus ``radius_m``, within the map's known tiles) or the whole known map (``known``),
+on the map's own cell lattice
 (so sampling at map resolution is exact), shrunk about its centre to at most ``max_cells``
 cells.  :func:`stable_extent` makes the published extent stable, as nav2 and RViz need it: it
 grows, in whole tiles, to hold each new window and never shrinks or moves, except when growing
@@ -37,6 +38,10 @@ class MapSnapshot:
     fused: OccupancyGridFields | None = None
 
 
+MARGIN_TILES = 1
+"""How far beyond the known tiles a region around the robots may reach (tiles)."""
+
+
 def publish_region(tiled: TiledMap, robots: Iterable[tuple[float, float]] = (), *,
                    mode: RegionMode = "robots", radius_m: float = 20.0,
                    max_cells: int = 2048 * 2048) -> GridGeometry | None:
@@ -48,6 +53,17 @@ def publish_region(tiled: TiledMap, robots: Iterable[tuple[float, float]] = (), 
         if len(pts) == 0:
             return None
         lo, hi = pts.min(axis=0) - radius_m, pts.max(axis=0) + radius_m
+        b = tiled.bounds()
+        if b is None:
+            return None
+        # Near where the map has tiles: far beyond them every cell is unknown and costs the
+        # subscribers bytes for nothing; a margin of MARGIN_TILES lets the known map grow
+        # before the published extent must (each growth is a whole grid on every topic).
+        span = tiled.lattice.span
+        lo = np.maximum(lo, np.array(b[:2]) - MARGIN_TILES * span)
+        hi = np.minimum(hi, np.array(b[2:]) + MARGIN_TILES * span)
+        if (hi <= lo).any():
+            return None
     else:
         b = tiled.bounds()
         if b is None:
