@@ -55,6 +55,7 @@ from sogm_service.apps.viewer.tiles import (
     parse_view,
     visible_tiles,
 )
+from sogm_service.apps.viewer.versions import lattice_bounds, source_of
 
 log = logging.getLogger("sogm_service.apps.viewer")
 
@@ -89,10 +90,11 @@ class Connection:
     """One browser."""
 
     def __init__(self, ws: WebSocket, hub: MapHub, pool: ThreadPoolExecutor,
-                 refresh_s: float, outbox_size: int) -> None:
+                 refresh_s: float, outbox_size: int, workers: int = 2) -> None:
         self.ws = ws
         self.hub = hub
         self.pool = pool
+        self.workers = max(1, workers)
         self.refresh_s = refresh_s
         self.outbox = Outbox(outbox_size)
         self.view: View | None = None
@@ -245,21 +247,32 @@ class Connection:
         if gone:
             self.send({"type": "drop", "keys": gone}, droppable=False)
         loop = asyncio.get_running_loop()
+        bounds = lattice_bounds(specs)
+        versions = None if bounds is None else await loop.run_in_executor(
+            self.pool, self.hub.versions, bounds, self.refresh_s)
         sent = 0
-        for spec in specs:
+        for first in range(0, len(specs), self.workers):  # as many at once as the pool runs
             if self.view is not view:
                 break  # the page moved on: start over with the new view
-            tile = await loop.run_in_executor(self.pool, self.hub.tile, spec, self.refresh_s)
-            if tile is None:
+            chunk = specs[first:first + self.workers]
+            sources = [None if versions is None else source_of(s, versions) for s in chunk]
+            got = await asyncio.gather(*(
+                loop.run_in_executor(self.pool, self.hub.tile, spec, self.refresh_s, src)
+                for spec, src in zip(chunk, sources, strict=True)))
+            for spec, tile in zip(chunk, got, strict=True):
+                if tile is None:
+                    continue
+                key = spec.key
+                if self.sent.get(key) == tile.digest or self.pending.get(key) == tile.digest:
+                    continue
+                self._queue_tile(spec, tile.digest, tile.png)
+                sent += 1
+            if any(t is None for t in got):
                 break  # the server is away or refusing: try again next round
-            key = spec.key
-            if self.sent.get(key) == tile.digest or self.pending.get(key) == tile.digest:
-                continue
-            self._queue_tile(spec, tile.digest, tile.png)
-            sent += 1
         self.refreshes += 1
         self.send({"type": "refreshed", "n": self.refreshes, "sent": sent,
-                   "tiles": len(specs), "level": level, "signature": view.signature()})
+                   "tiles": len(specs), "level": level, "signature": view.signature(),
+                   "checked": versions is not None})
 
     def _queue_tile(self, spec: TileSpec, digest: str, png: bytes) -> None:
         key = spec.key
@@ -340,7 +353,9 @@ def create_app(hub: MapHub, *, refresh_s: float = 1.0, allowed_hosts: list[str] 
             "layers": [] if info is None else list(info.layers),
             "tiles": 0 if info is None else len(info.tiles),
             "robots": sorted(hub.robots), "queries": hub.queries,
-            "query_failures": hub.query_failures}, headers={"Cache-Control": "no-store"})
+            "query_failures": hub.query_failures, "checks": hub.book.stats.checks,
+            "check_replies": hub.book.stats.replies, "check_bytes": hub.book.stats.bytes,
+            "check_fallbacks": hub.book.stats.fallbacks}, headers={"Cache-Control": "no-store"})
 
     async def socket(ws: WebSocket) -> None:
         origin, host = ws.headers.get("origin"), ws.headers.get("host")
@@ -348,7 +363,7 @@ def create_app(hub: MapHub, *, refresh_s: float = 1.0, allowed_hosts: list[str] 
             log.warning("viewer: refused a WebSocket from origin %s (host %s)", origin, host)
             await ws.close(code=1008)
             return
-        conn = Connection(ws, hub, pool, refresh_s, outbox_size)
+        conn = Connection(ws, hub, pool, refresh_s, outbox_size, workers)
         connections.add(conn)
         try:
             await conn.run()

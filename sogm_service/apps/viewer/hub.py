@@ -27,17 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
-from sogm_service.apps.render import (
-    UNKNOWN_BGR,
-    UNKNOWN_HEX,
-    dominant_class_image,
-    palette_hex,
-    probability_image,
-)
+from sogm_service.apps.render import UNKNOWN_HEX, palette_hex
+from sogm_service.apps.viewer.pictures import fetch, render
 from sogm_service.apps.viewer.tiles import Lattice, TileSpec
+from sogm_service.apps.viewer.versions import Bounds, Source, VersionBook
 from sogm_service.client.isms import IsmFootprint
 from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import loopback_settings, open_session
@@ -85,6 +80,7 @@ class CachedTile:
     digest: str
     png: bytes
     fetched: float
+    source: Source | None = None  # the map-tile versions it was drawn from, when known
 
 
 @dataclass
@@ -115,6 +111,7 @@ class MapHub:
         self._thread: threading.Thread | None = None
         self._tile_locks = [threading.Lock() for _ in range(32)]
         self._cache: OrderedDict[str, CachedTile] = OrderedDict()
+        self.book = VersionBook()
         # state, under _lock
         self.connected = False
         self.error: str | None = "connecting"
@@ -212,6 +209,7 @@ class MapHub:
                 (info.layers, info.tiles, info.bounds, info.server_id)
             if old is not None and old.server_id != info.server_id:
                 self._cache.clear()  # another server process: nothing cached is its
+                self.book.clear()
                 self._last_rejected = {}
             self.info = info
             if changed:
@@ -329,21 +327,37 @@ class MapHub:
             return [] if self.info is None else list(self.info.layers)
 
     # -- queries (blocking; called from the web side's thread pool) ------------------------
-    def tile(self, spec: TileSpec, max_age: float) -> CachedTile | None:
-        """The picture of one display tile, from the cache when younger than ``max_age``
-        seconds, else asked of the map server; ``None`` when it cannot be had now."""
+    def versions(self, bounds: Bounds, max_age: float) -> dict[tuple[int, int], int] | None:
+        """The current versions of the known map tiles within ``bounds`` (one ``tiles/changed``
+        check, shared by every page for ``max_age`` s), or None: ask every tile instead."""
+        client, info = self.client(), self.info
+        if client is None or info is None:
+            return None
+        try:
+            return self.book.versions(client, info, bounds, max_age,
+                                      self.settings.query_timeout_s)
+        except Exception as exc:  # ClientError (refused, timed out) or a closed session
+            log.debug("tiles/changed %s: %s: %s", bounds, type(exc).__name__, exc)
+            return None
+
+    def tile(self, spec: TileSpec, max_age: float,
+             source: Source | None = None) -> CachedTile | None:
+        """The picture of one display tile; ``None`` when it cannot be had now.  With the
+        ``source`` versions it is drawn from, the cached picture of the same versions is
+        current whatever its age; without, the cache serves it for ``max_age`` seconds."""
         key = spec.key
         with self._tile_locks[hash(key) % len(self._tile_locks)]:
             with self._lock:
                 entry = self._cache.get(key)
             now = time.monotonic()
-            if entry is not None and now - entry.fetched < max_age:
+            if entry is not None and (entry.source == source if source is not None
+                                      else now - entry.fetched < max_age):
                 return entry
             client = self.client()
             if client is None:
                 return None
             try:
-                data, reply_layers = _fetch(client, spec)
+                data, reply_layers = fetch(client, spec)
             except ClientError as exc:
                 self.query_failures += 1
                 log.debug("tile %s: %s", key, exc)
@@ -357,10 +371,9 @@ class MapHub:
                                      person=b"sogm-viewer").hexdigest()
             digest += f"-{len(reply_layers)}"
             if entry is not None and entry.digest == digest:
-                entry.fetched = now  # unchanged cells: no new picture
-                fresh = entry
+                fresh = CachedTile(digest, entry.png, now, source)  # no new picture
             else:
-                fresh = CachedTile(digest, _render(spec, data), now)
+                fresh = CachedTile(digest, render(spec, data), now, source)
             with self._lock:
                 self._cache[key] = fresh
                 self._cache.move_to_end(key)
@@ -412,38 +425,3 @@ class MapHub:
             edges += [[n.id, m] for m in n.neighbors if n.id < m]
         return {"type": "supercells", "nodes": nodes, "edges": edges,
                 "box": [xmin, ymin, xmax, ymax], "resolution": res, "error": None}
-
-
-def _fetch(client: MapClient, spec: TileSpec) -> tuple[np.ndarray, list[str]]:
-    """The cells of one display tile as log-odds: ``(N, P, P)`` or ``(P, P)`` (fused)."""
-    cx, cy = spec.centre
-    window: dict[str, Any] = dict(x=cx, y=cy, width=spec.span, height=spec.span,
-                                  resolution=spec.resolution, encoding="logodds_i16")
-    kind, _, rest = spec.signature.partition(":")
-    if kind == "layer":
-        r = client.submap(**window, layers=[rest])
-    elif kind == "fused":
-        method, _, names = rest.partition(":")
-        r = client.fused(**window, method=method, layers=names.split(",") if names else None)
-    else:
-        r = client.submap(**window)
-    return np.asarray(r.data), list(r.layers)
-
-
-_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-
-
-def _render(spec: TileSpec, data: np.ndarray) -> bytes:
-    """Log-odds cells -> the PNG the page draws (map y up: row 0 is the tile's top)."""
-    if data.ndim == 3 and data.shape[0] == 0:
-        img = np.empty((*data.shape[1:], 3), np.uint8)
-        img[:] = UNKNOWN_BGR
-    elif spec.signature == "class":
-        img = dominant_class_image(logodds.fixed_to_prob(data))
-    else:
-        cells = data[0] if data.ndim == 3 else data
-        img = probability_image(logodds.fixed_to_prob(cells), unknown=cells == 0)
-    ok, png = cv2.imencode(".png", img, _PNG)
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return png.tobytes()
