@@ -521,3 +521,72 @@ def test_the_page_keeps_working_when_the_map_server_restarts(
                  .get("x") == 1.0, what="no poses after the restart")
     assert read_console(browser, console) == []
     assert stack.viewer.poll() is None  # the viewer process itself never went down
+
+
+INTEL = Path(__file__).resolve().parents[2] / "sogm_service" / "data" / "intel-corrected.log.gz"
+
+
+def _rounds_after(browser: Any, n: int) -> list[dict[str, Any]]:
+    rounds: list[dict[str, Any]] = js(browser, "return window.sogmViewer.state.rounds;")
+    return [r for r in rounds if r["n"] > n]
+
+
+def _submaps(client: MapClient) -> int:
+    return client.stats().counters.get("queries_submap", 0)
+
+
+@needs_browser
+def test_the_intel_replay_shows_whole_in_the_first_round_and_idle_costs_no_submap(
+        stack: Stack, browser: Any) -> None:
+    """The whole Intel log (910 scans) replayed into the (restarted) server; a fresh page.
+    Every visible display tile is drawn by the first round at its view (a count, not a
+    speed: the seconds are printed), and rounds over an unchanged map ask no sub-map."""
+    import time
+
+    replay = subprocess.run(
+        [sys.executable, "-m", "sogm_service", "replay", "carmen", str(INTEL), "--connect",
+         stack.endpoint, "--png", str(stack.tmp / "intel.png")],
+        capture_output=True, timeout=120, check=False)
+    assert replay.returncode == 0, replay.stdout.decode(errors="replace")[-2000:]
+    with MapClient.connect(stack.endpoint, timeout=5.0) as client:
+        assert wait_until(lambda: len(client.info().tiles) >= 10, 20)
+        fused: list[int] = []
+        assert wait_until(lambda: fused.append(client.stats().counters.get("isms_fused", 0))
+                          or (len(fused) > 3 and fused[-1] == fused[-4]), 30, interval=0.3)
+        t0 = time.monotonic()
+        browser.get(stack.url)  # a new page: nothing sent to it yet
+        wait_for(browser, lambda d: js(d, "return window.sogmViewer.state.info !== null && "
+                 "window.sogmViewer.state.info.tile_count") >= 10, what="no info")
+        # the whole map at one cell a screen pixel (level 0): all ten lattice tiles visible
+        n0 = js(browser, "window.sogmViewer.setView(0.0, -6.4, 20.0); "
+                "return window.sogmViewer.state.refreshes;")
+        first: list[dict[str, Any]] = []
+
+        def first_round(d: Any) -> bool:
+            first[:] = [r for r in _rounds_after(d, n0) if r["level"] == 0
+                        and r["signature"] == "class" and r["tiles"] >= 10][:1]
+            return bool(first)
+
+        wait_for(browser, first_round, what="no round at level 0 over the whole map")
+        tiles = first[0]["tiles"]
+        assert first[0]["checked"] and first[0]["sent"] == tiles  # every tile, first round
+        wait_for(browser, lambda d: js(d, "return window.sogmViewer.state.tilesReceived;")
+                 >= tiles, what="the first round's tiles were not all drawn")
+        print(f"\nIntel replay: {tiles} display tiles drawn {time.monotonic() - t0:.2f} s "
+              f"after the page opened (load {os.getloadavg()[0]:.2f})")
+        # an unchanged map: rounds go on, each with one tiles/changed check, and no sub-map
+        before, state0 = _submaps(client), stack.state()
+        n1 = js(browser, "return window.sogmViewer.state.refreshes;")
+        wait_for(browser, lambda d: len(_rounds_after(d, n1)) >= 5, what="rounds stopped")
+        assert _submaps(client) == before
+        assert stack.state()["checks"] > state0["checks"]
+        # one ISM inside one lattice tile: that display tile alone is asked and sent again
+        received = js(browser, "return window.sogmViewer.state.tilesReceived;")
+        client.publish_ism("ism/carmen/laser/obstacle", np.full((20, 20), 0.95, np.float32),
+                           resolution=0.05, origin=Pose2D(5.0, 5.0), robot="carmen")
+        wait_for(browser, lambda d: js(d, "return window.sogmViewer.state.tilesReceived;")
+                 > received, what="the changed tile never came")
+        n2 = js(browser, "return window.sogmViewer.state.refreshes;")
+        wait_for(browser, lambda d: len(_rounds_after(d, n2)) >= 3, what="rounds stopped")
+        assert _submaps(client) - before == 1
+        assert js(browser, "return window.sogmViewer.state.tilesReceived;") == received + 1

@@ -34,6 +34,7 @@
     footprintsReceived: 0,
     refreshes: 0,
     lastRefresh: null,
+    rounds: [],
     errors: [],
     userMoved: false,
   };
@@ -127,7 +128,12 @@
         });
         scheduleDraw();
         break;
-      case "refreshed": state.refreshes = m.n; state.lastRefresh = m; break;
+      case "refreshed":
+        state.refreshes = m.n;
+        state.lastRefresh = m;
+        state.rounds.push(m);    // the last rounds, for scripts and tests
+        if (state.rounds.length > 50) state.rounds.shift();
+        break;
       case "probe": onProbe(m); break;
       case "supercells": state.supercells = m; scheduleDraw(); break;
       case "error": state.errors.push(m); console.warn("viewer:", m.code, m.message); break;
