@@ -8,10 +8,12 @@ Per browser (one :class:`Connection`) four asyncio tasks run:
   records the latest of each (a page sending faster than it is answered only replaces its
   request).
 * *refresher*: every ``refresh_s`` seconds, or at once after a new view, an ``info`` change or a
-  tile event, works out the visible known display tiles (:mod:`.tiles`), gets each from the
-  hub's shared cache (which asks the map server at most once per ``refresh_s`` per tile) and
-  sends only those whose cells changed since this browser got them.  It skips a round while
-  the outbox still holds tiles the browser has not taken, so a stuck page causes no queries.
+  tile event, works out the visible known display tiles (:mod:`.tiles`), checks the versions of
+  the map tiles under them with one ``tiles/changed`` query (:mod:`.versions`, shared by every
+  page), gets from the hub's shared cache the display tiles (asked of the map server again only
+  when the versions under them moved) and sends only those whose cells changed since this
+  browser got them.  It skips a round while the outbox still holds tiles the browser has not
+  taken, so a stuck page causes no queries.
 * *answers*: answers the latest ``probe`` and ``supercells`` request.
 
 Queries to the map server run on one small thread pool shared by all browsers: however many

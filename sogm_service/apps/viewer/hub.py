@@ -11,9 +11,10 @@ and footprints); the web side takes it with :meth:`MapHub.drain` on its own sche
 Zenoh callback ever waits for a browser.
 
 Tiles are rendered on demand (:meth:`MapHub.tile`, called from a small thread pool) and cached
-by display tile and picture, shared by every browser: a tile is asked of the map server at most
-once per ``max_age`` however many pages show it, and re-encoded only when its cells changed
-(a digest of the reply's cells).
+by display tile and picture, shared by every browser.  A tile is asked of the map server again
+only when the versions of the map tiles under it moved (:meth:`MapHub.versions`, one
+``tiles/changed`` check a round, :mod:`.versions`), or, where versions cannot be checked, at
+most once per ``max_age``; it is re-encoded only when its cells changed (a digest of the reply).
 """
 
 from __future__ import annotations
