@@ -165,7 +165,7 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
             client.compression = compression
             watcher = _FleetWatcher(client, out / "tile_events.log")
             fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
-                           server, progress, configs, compression)
+                           server, progress, configs, compression, map_name)
             if isinstance(server, _Remote):
                 server.wait_idle(60.0, published=fleet.isms_sent - fleet.isms_lost)
             else:
@@ -293,7 +293,8 @@ class _FleetWatcher:
 
 def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: float,
            seed: int, realtime: bool, speed: float, server: Any, progress: bool,
-           configs: dict[str, Path], compression: Compression | None = "zstd") -> Any:
+           configs: dict[str, Path], compression: Compression | None = "zstd",
+           map_name: str = "demo") -> Any:
     """Run the fleet in a thread while a progress bar shows the server's view."""
     from sogm_service.sim.fleet import run_fleet
 
@@ -307,7 +308,7 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
                                  zenoh_configs=configs or None,
                                  sensors=demo_sensors(world),
                                  observers=demo_observers(world),
-                                 compression=compression)
+                                 compression=compression, map_name=map_name)
 
     thread = threading.Thread(target=fleet, name="demo-fleet")
     t0 = time.monotonic()

@@ -99,9 +99,10 @@ class RobotLink:
     def __init__(self, name: str, endpoint: str, *, ism_prefix: str = "ism",
                  pose_prefix: str = "pose", encoding: str = "occupancy_i8",
                  frame: str = "map", zenoh_config: Path | None = None,
-                 compression: Compression | None = ZSTD) -> None:
+                 compression: Compression | None = ZSTD, map_name: str = "default") -> None:
         self.name = name
-        self.client = MapClient.connect(endpoint, zenoh_config=zenoh_config)
+        # The map's name: the offline policy asks this map's acks about ISMs on a lost link.
+        self.client = MapClient.connect(endpoint, map_name=map_name, zenoh_config=zenoh_config)
         self.client.compression = compression  # None: raw ISMs (a baseline, older servers)
         self.ism_prefix = ism_prefix
         self.pose_prefix = pose_prefix
@@ -156,7 +157,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               stop: threading.Event | None = None, speed: float = 1.0,
               zenoh_configs: Mapping[str, Path] | None = None,
               observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = (),
-              compression: Compression | None = ZSTD, flush_s: float = 5.0) -> FleetStats:
+              compression: Compression | None = ZSTD, flush_s: float = 5.0,
+              map_name: str = "default") -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
@@ -168,7 +170,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     instead of a plain connection to ``endpoint``.  ``observers`` add ISMs to each step
     (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  ``compression``: how the robots
     send their ISMs (zstd, or ``None`` for raw).  ``flush_s``: how long each robot waits at
-    the end for a route for the ISMs it still holds after a drop-out.  Blocks until done.
+    the end for a route for the ISMs it still holds after a drop-out.  ``map_name``: the
+    server's map (the robots ask its acks).  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -180,7 +183,7 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
             links[name] = RobotLink(name, endpoint, ism_prefix=ism_prefix,
                                     pose_prefix=pose_prefix, encoding=encoding,
                                     zenoh_config=(zenoh_configs or {}).get(name),
-                                    compression=compression)
+                                    compression=compression, map_name=map_name)
         for step in simulate(world, robots, duration_s, rate_hz, seed, odom_noise=odom_noise,
                              sensors=sensors):
             if stop is not None and stop.is_set():

@@ -22,9 +22,10 @@ ZSTD: Final = "zstd"
 Compression = Literal["zstd"]
 """The compressions a payload may declare (``None`` or absent: raw bytes)."""
 
-LEVEL: Final = 3
-"""zstd's default level: ~1 GB/s on grids here; higher levels save a few percent for 3-10x the
-time."""
+LEVEL: Final = 1
+"""Measured on this project's grids: level 1 keeps level 3's ratio within a few percent (laser
+ISMs 153x, camera ISMs 7.9x against 8.0x, tile planes 15.1x against 15.3x) in 20-50 % less time
+(a 1 MiB sub-map reply 0.38 ms against 0.48 ms); higher levels only add time."""
 
 _compressor = zstandard.ZstdCompressor(level=LEVEL, write_content_size=True)
 
