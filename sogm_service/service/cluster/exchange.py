@@ -157,22 +157,28 @@ class TileExchange(ClusterView):
                     missing.append(index)
         asked = [(index, self._ask(index, None, self.settings.fetch_timeout_s))
                  for index in missing]
+        unanswered: list[TileIndex] = []
         for index, replies in asked:
             got = self._first(replies)
-            if got is None:
-                self.stats.count("cluster_no_owner")
-                raise QueryError("no_owner", f"no owner of tile {index} answered within "
-                                             f"{self.settings.fetch_timeout_s} s", "x")
             tile = None
-            if got.status == "tile" and got.blob is not None:
+            if got is not None and got.status == "tile" and got.blob is not None:
                 try:
                     stored = tile_from_bytes(got.blob, self.files.expect)
+                    tile = self._as_tile(index, stored.header, stored.data)
                 except TileFormatError as exc:
-                    raise QueryError("no_owner", f"tile {index} came back damaged: "
-                                                 f"{exc.reason}", "x") from None
-                tile = self._as_tile(index, stored.header, stored.data)
+                    log.warning("cluster: tile %s came back damaged: %s", index, exc.reason)
+                    got = None
+            if got is None:
+                unanswered.append(index)
+                continue
             out[index] = tile
             self.stats.count("cluster_tiles_fetched")
+        if unanswered:  # never a partial answer: the query fails, naming what it lacks
+            self.stats.count("cluster_no_owner")
+            named = ", ".join(str(i) for i in unanswered[:8])
+            more = f" and {len(unanswered) - 8} more" if len(unanswered) > 8 else ""
+            raise QueryError("no_owner", f"no owner of tile(s) {named}{more} answered within "
+                                         f"{self.settings.fetch_timeout_s} s", "x")
         if self.settings.fetch_cache_s > 0 and self.settings.fetch_cache_tiles > 0 and missing:
             until = time.monotonic() + self.settings.fetch_cache_s
             with self._cache_lock:

@@ -26,7 +26,12 @@ class TileSource(Protocol):
 
 class GatheredMap(TiledMap):
     """A read-only view of the cluster's map for one query: this member's tiles where it
-    serves them, the owners' (fetched once, before sampling) elsewhere."""
+    serves them, the owners' (fetched once, before sampling) elsewhere.
+
+    Both reading paths fetch first: :meth:`mosaic` (a window read at map resolution) and
+    :meth:`read_cells` (a coarse window reads only the cells its warp interpolates from).  A
+    tile neither served here nor fetched would read as unknown, a silently partial answer; so
+    every tile a read touches is either this member's or its owner's, or the read raises."""
 
     def __init__(self, base: TiledMap, cluster: TileSource) -> None:
         super().__init__(base.name, base.frame, base.lattice, base.eps0)
@@ -46,11 +51,25 @@ class GatheredMap(TiledMap):
                now: float | None = None) -> npt.NDArray[np.int16]:
         c0, r0, w, h = box
         t = self.tile_size
-        need = [(i, j) for j in range(r0 // t, (r0 + h - 1) // t + 1)
-                for i in range(c0 // t, (c0 + w - 1) // t + 1)
-                if not self._cluster.serves((i, j))]
-        self._remote = self._cluster.fetch(need) if need else {}
+        self._fetch_for([(i, j) for j in range(r0 // t, (r0 + h - 1) // t + 1)
+                         for i in range(c0 // t, (c0 + w - 1) // t + 1)])
         return super().mosaic(box, layer_ids, self._base.now() if now is None else now)
+
+    def read_cells(self, u: npt.NDArray[np.int64], v: npt.NDArray[np.int64],
+                   layer_ids: list[int], now: float | None = None) -> npt.NDArray[np.int16]:
+        t = self.tile_size
+        if u.size:
+            pairs = np.unique(np.stack([u // t, v // t], axis=1), axis=0)
+            self._fetch_for([(int(i), int(j)) for i, j in pairs.tolist()])
+        return super().read_cells(u, v, layer_ids, self._base.now() if now is None else now)
+
+    def _fetch_for(self, indices: list[TileIndex]) -> None:
+        """Fetch the tiles of ``indices`` this member does not serve and has not fetched for
+        this query yet (raises ``QueryError`` when an owner does not answer)."""
+        need = [index for index in indices
+                if index not in self._remote and not self._cluster.serves(index)]
+        if need:
+            self._remote.update(self._cluster.fetch(need))
 
     def get_tile(self, index: TileIndex, create: bool = False) -> Tile | None:
         if index in self._remote:
