@@ -14,7 +14,8 @@ Paper equations implemented here:
 * Eq. 1, the recursive Bayesian update, is a product of odds, i.e. a sum of log-odds:
   ``l_t = clamp(l_{t-1} + logit(P(m | z_t, x_t)))`` (:func:`bayes_update`).
 * Eq. 6, super-Bayesian independent opinion pool ``P_B``: a sum of log-odds over layers
-  (:func:`fuse_bayes`); max pooling ``P_M``: a max over layers, because logit is monotone
+  (:func:`fuse_bayes`); max pooling ``P_M``: a max over the layers that observed the cell,
+  because logit is monotone and a layer without evidence there has no opinion
   (:func:`fuse_max`).
 * "forget" of the authors' original server (decay toward unknown): ``l *= factor``
   (:func:`forget`).
@@ -22,6 +23,7 @@ Paper equations implemented here:
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 from functools import lru_cache
 from typing import Final
@@ -210,8 +212,30 @@ def fuse_bayes(stack: Fixed) -> npt.NDArray[np.int32]:
 
 
 def fuse_max(stack: Fixed) -> Fixed:
-    """Eq. 6, max pooling ``P_M = max_n P_n`` over axis 0 (logit is monotone)."""
-    return np.max(stack, axis=0)
+    """Eq. 6, max pooling ``P_M = max_n P_n`` over axis 0, over the layers that observed the
+    cell (logit is monotone, so it is a max of log-odds).
+
+    A layer with no evidence in a cell (log-odds exactly 0, as an absent plane, an unknown ISM
+    cell and a fully forgotten one are) has no opinion there: the cell is occupied when any
+    layer that observed it says occupied, free when the layers that observed it say free,
+    and unknown (0) only when no layer did.  Plain ``max_n`` would let one layer's unknown
+    (``P = 0.5``) outvote every other layer's free: a fleet whose robots write their own
+    layers would then see free space only where every robot looked.
+
+    One pass per layer and no mask of the stack: the plain max ``hi`` is the answer wherever
+    it is positive; where it is not, every layer is <= 0 and the max of the same bits read as
+    ``uint16`` ranks 0 lowest and the negatives by their value (-1 highest), so it is the
+    largest observed value, or 0 when no layer observed the cell.
+    """
+    hi = np.max(stack, axis=0)
+    observed_max = np.max(stack.view(np.uint16), axis=0).view(DTYPE)
+    take_hi = np.greater(hi, 0).view(np.int8).astype(DTYPE)
+    np.negative(take_hi, out=take_hi)  # all bits set where hi > 0
+    # observed_max ^ ((observed_max ^ hi) & take_hi): hi where hi > 0, else observed_max
+    np.bitwise_xor(hi, observed_max, out=hi)
+    np.bitwise_and(hi, take_hi, out=hi)
+    np.bitwise_xor(hi, observed_max, out=hi)
+    return hi
 
 
 def forget(state: Fixed, factor: float) -> None:
@@ -219,6 +243,16 @@ def forget(state: Fixed, factor: float) -> None:
     if not 0.0 <= factor <= 1.0:
         raise ValueError(f"forget factor must lie in [0, 1], got {factor!r}")
     np.copyto(state, np.rint(state * np.float32(factor)).astype(DTYPE))
+
+
+def weightless_age(half_life: float, magnitude: int) -> float:
+    """The age (s) past which a layer forgetting with ``half_life`` keeps nothing of evidence
+    of at most ``magnitude`` fixed-point units: decay is ``trunc(l * 0.5 ** (age / h))``,
+    which is 0 for every ``|l| <= magnitude`` once ``0.5 ** (age / h) * magnitude < 1``,
+    i.e. ``age > h * log2(magnitude)`` (12.8 half-lives at the default clamp)."""
+    if not (half_life > 0 and math.isfinite(half_life)):
+        raise ValueError(f"half-life must be positive and finite, got {half_life!r}")
+    return float(half_life) * math.log2(max(int(magnitude), 1))
 
 
 def _encode_direct(l: npt.NDArray, encoding: Encoding) -> npt.NDArray:

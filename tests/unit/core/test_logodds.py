@@ -79,12 +79,77 @@ def test_eq6_max_pool_matches_probability_max(n_layers: int) -> None:
 
 
 def test_eq6_pools_with_unknown_layers() -> None:
-    # An unknown layer (P = 0.5) is neutral in P_B; in P_M it is a floor of 0.5.
+    # An unknown layer (log-odds exactly 0) has no opinion: neutral in P_B, and in P_M the
+    # max is over the layers that observed the cell (a free cell stays free).
     stack = logodds.prob_to_fixed(np.array([[0.2, 0.9], [0.5, 0.5]]))
+    assert (stack[1] == 0).all()
     pb = logodds.fixed_to_prob(logodds.fuse_bayes(stack[:, :, None]))[:, 0]
     pm = logodds.fixed_to_prob(logodds.fuse_max(stack[:, :, None]))[:, 0]
     np.testing.assert_allclose(pb, [0.2, 0.9], atol=1e-4)
-    np.testing.assert_allclose(pm, [0.5, 0.9], atol=1e-4)
+    np.testing.assert_allclose(pm, [0.2, 0.9], atol=1e-4)
+
+
+def _max_over_observed(stack: np.ndarray) -> np.ndarray:
+    """The reference: per cell, max over the layers whose value is not 0; 0 if there are none."""
+    out = np.zeros(stack.shape[1:], dtype=np.int16)
+    for idx in np.ndindex(*stack.shape[1:]):
+        seen = [int(v) for v in stack[(slice(None), *idx)] if v != 0]
+        out[idx] = max(seen) if seen else 0
+    return out
+
+
+def test_eq6_max_pool_ignores_layers_without_evidence_exhaustively() -> None:
+    # Every combination of three layers over values of both signs, small and extreme, and 0.
+    values = [-MAX_STATE, -6907, -5, -1, 0, 1, 7, 6907, MAX_STATE]
+    combos = np.array(np.meshgrid(values, values, values, indexing="ij"), dtype=np.int16)
+    stack = combos.reshape(3, -1)
+    got = logodds.fuse_max(stack)
+    assert got.dtype == np.int16
+    np.testing.assert_array_equal(got, _max_over_observed(stack))
+    # the cells no layer observed, and only those, stay unknown
+    assert ((got == 0) == (stack == 0).all(axis=0)).all()
+
+
+@given(st.integers(1, 5), st.integers(0, 2**32 - 1))
+@settings(max_examples=60, deadline=None)
+def test_eq6_max_pool_on_random_sparse_stacks(n_layers: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    stack = rng.integers(-MAX_STATE, MAX_STATE + 1, size=(n_layers, 9, 7)).astype(np.int16)
+    stack[rng.random(stack.shape) < 0.5] = 0
+    np.testing.assert_array_equal(logodds.fuse_max(stack), _max_over_observed(stack))
+    # a strided view (a sampled stack's chosen layers) gives the same
+    wide = np.zeros((n_layers, 9, 14), dtype=np.int16)
+    wide[:, :, ::2] = stack
+    np.testing.assert_array_equal(logodds.fuse_max(wide[:, :, ::2]), _max_over_observed(stack))
+
+
+def test_eq6_max_pool_of_two_robots_layers_that_do_not_overlap() -> None:
+    # Each robot's layer saw its own half (free with one wall cell); the other half is
+    # unknown in it.  Both halves are free in the pooled map and both walls occupied.
+    free, wall = logodds.prob_to_fixed([0.1, 0.95])
+    a = np.zeros((4, 8), dtype=np.int16)
+    b = np.zeros((4, 8), dtype=np.int16)
+    a[:, :4], b[:, 4:] = free, free
+    a[1, 1], b[2, 6] = wall, wall
+    pooled = logodds.fuse_max(np.stack([a, b]))
+    assert (pooled < 0).sum() == 30 and (pooled > 0).sum() == 2
+    assert pooled[1, 1] == wall and pooled[2, 6] == wall
+    # occupied where any observer says occupied, over another layer's free
+    b[1, 1] = free
+    assert logodds.fuse_max(np.stack([a, b]))[1, 1] == wall
+
+
+def test_weightless_age_is_where_decay_leaves_no_unit() -> None:
+    h = 10.0
+    hi = logodds.clamp_limits(0.001)[1]
+    age = logodds.weightless_age(h, hi)
+    assert age == pytest.approx(h * math.log2(hi))
+    assert 12.0 * h < age < 13.0 * h  # 6907 units: 12.75 half-lives
+    cells = np.array([-hi, -1, 1, hi], dtype=np.float64)
+    assert (np.trunc(cells * 0.5 ** ((age * 1.0001) / h)) == 0).all()
+    assert np.trunc(hi * 0.5 ** ((age * 0.999) / h)) == 1  # just before: one unit is left
+    with pytest.raises(ValueError):
+        logodds.weightless_age(0.0, hi)
 
 
 # -- Eq. 1 ---------------------------------------------------------------------------------
