@@ -24,6 +24,7 @@ from sogm_service.core.map.tile import TileSnapshot
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import LoaderResult, TileIndex
 from sogm_service.service.config import ServiceConfig
+from sogm_service.service.server.allocator import give_back
 from sogm_service.service.server.stats import Stats
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.writer import TileWriter
@@ -62,6 +63,7 @@ class Checkpointer:
         self._writer_bound = int(config.limits.max_writer_queue_mb * 1e6)
         self._warned_budget = False
         self._evicting = threading.Lock()
+        self._evicted_at_trim = 0  # tiles_evicted when memory was last given back
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -120,6 +122,20 @@ class Checkpointer:
         while not self._stop.wait(self.config.storage.checkpoint_interval_s):
             self.checkpoint()
             self.enforce_budget()
+            self.give_back_memory()
+
+    def give_back_memory(self) -> bool:
+        """Once tiles were evicted and every snapshot is written, hand the freed pages back to
+        the OS (:func:`~sogm_service.service.server.allocator.give_back`): the planes of evicted
+        tiles lie between live heap blocks, which no automatic trim returns.  At most once a
+        checkpoint interval, and only after evictions; True when pages went back."""
+        evicted = self.stats.snapshot()[0].get("tiles_evicted", 0)
+        if evicted == self._evicted_at_trim or self.writer is None or self.writer.pending():
+            return False
+        self._evicted_at_trim = evicted
+        released = give_back()
+        self.stats.count("memory_given_back" if released else "memory_give_back_none")
+        return released
 
     def checkpoint(self) -> int:
         """Snapshot every dirty tile to the writer; returns how many were submitted."""
