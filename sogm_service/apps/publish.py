@@ -4,7 +4,9 @@ sogm-service schemas (the JSON Schema of every message)."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +36,8 @@ def _add_publish(subparsers: Any) -> None:
                 "send an ISM from a .npy or image file and wait until the server fused it",
                 epilog="example: sogm-service publish-ism scan.npy --key "
                        "ism/robot1/laser/obstacle --resolution 0.05 --x 1 --y 2 --yaw-deg 90\n"
-                       "Exit 0: fused (a query now sees it).  Exit 2: the server's reason, "
+                       "Exit 0: fused (a query now sees it).  Exit 2: the server's reason "
+                       "(e.g. stale_stamp: a --stamp its forgetting layer keeps nothing of), "
                        "or nothing heard back.")
     connection_args(p)
     p.add_argument("file", type=Path,
@@ -56,6 +59,10 @@ def _add_publish(subparsers: Any) -> None:
     p.add_argument("--layer", default=None,
                    help="layer name (default: the key after ism/, e.g. robot1/laser/obstacle)")
     p.add_argument("--frame", default="map", help="frame of the pose (must be the map's)")
+    p.add_argument("--stamp", type=float, default=None, metavar="SECONDS",
+                   help="when the ISM was observed: Unix time in seconds, as the wire's stamp "
+                        "(default: now); a layer that forgets weighs an ISM by its age and "
+                        "refuses one too old to keep anything of")
     p.add_argument("--no-wait", action="store_true",
                    help="do not wait for the server's acknowledgement (fire and forget)")
     p.add_argument("--wait-timeout", type=float, default=15.0, metavar="S",
@@ -71,16 +78,20 @@ def publish_ism(args: argparse.Namespace) -> int:
 
     data = read_grid(args.file)
     origin = Pose2D(args.x, args.y, yaw(args))
+    if args.stamp is not None and not math.isfinite(args.stamp):
+        raise UsageError("--stamp must be a finite number of seconds (Unix time)")
+    stamp = time.time() if args.stamp is None else args.stamp
     # Checked before connecting: a bad file never waits for a network.
     build_ism(data, resolution=args.resolution, origin=origin, encoding=args.encoding,
-              layer=args.layer, frame=args.frame)
+              layer=args.layer, frame=args.frame, stamp=stamp)
     with open_client(args) as client:
         msg = client.publish_ism(args.key, data, resolution=args.resolution, origin=origin,
                                  encoding=args.encoding, layer=args.layer, frame=args.frame,
-                                 wait=not args.no_wait, timeout=args.wait_timeout)
+                                 stamp=stamp, wait=not args.no_wait,
+                                 timeout=args.wait_timeout)
     state = "published" if args.no_wait else "fused"
     print(f"{state} {msg.width}x{msg.height} {msg.encoding} ISM on {args.key} "
-          f"({np.asarray(data).nbytes} bytes)")
+          f"({np.asarray(data).nbytes} bytes, stamp {msg.stamp:.3f})")
     return 0
 
 

@@ -6,6 +6,7 @@ checked as the server will check it (:func:`build_ism`), and where a published I
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,10 +36,11 @@ def encoding_of(arr: npt.NDArray[Any]) -> str:
 
 def build_ism(data: npt.NDArray[Any], *, resolution: float, origin: Pose2D | None = None,
               encoding: str | None = None, layer: str | None = None, frame: str = "map",
-              stamp: float = 0.0, robot: str | None = None) -> IsmMessage:
+              stamp: float | None = None, robot: str | None = None) -> IsmMessage:
     """The :class:`IsmMessage` of a grid, checked as the server will check it; raises
     :class:`InvalidIsmError` (one line) for anything it would refuse or that would not mean
-    what the array says."""
+    what the array says.  ``stamp``: Unix time in seconds, default now (the time a layer that
+    forgets weighs the ISM by)."""
     origin = origin or Pose2D()
     arr = np.ascontiguousarray(data)
     if arr.ndim != 2 or 0 in arr.shape:
@@ -58,7 +60,8 @@ def build_ism(data: npt.NDArray[Any], *, resolution: float, origin: Pose2D | Non
         raise InvalidIsmError(f"the {arr.dtype} values do not fit encoding {enc} ({dtype}) "
                               "without changing them: convert them first")
     try:
-        return IsmMessage(layer=layer, frame=frame, stamp=stamp, robot=robot,
+        return IsmMessage(layer=layer, frame=frame,
+                          stamp=time.time() if stamp is None else stamp, robot=robot,
                           resolution=resolution,
                           origin=PoseModel(x=origin.x, y=origin.y, yaw=origin.yaw),
                           width=arr.shape[1], height=arr.shape[0], encoding=enc,

@@ -282,14 +282,15 @@ class MapClient:
 
     def publish_ism(self, key: str, data: npt.NDArray[Any], *, resolution: float,
                     origin: Pose2D | None = None, encoding: str | None = None,
-                    layer: str | None = None, frame: str = "map", stamp: float = 0.0,
+                    layer: str | None = None, frame: str = "map", stamp: float | None = None,
                     robot: str | None = None, wait: bool = False,
                     timeout: float | None = None) -> IsmMessage:
         """Publish an ISM grid on ``key`` (e.g. ``ism/robot1/laser/obstacle``).
 
         ``encoding`` defaults from the dtype: uint8 -> prob_u8, int8 -> occupancy_i8,
-        float -> prob_f32.  A grid that is not 2-D, values that do not fit the encoding or an
-        invalid field raise :class:`InvalidIsmError` (nothing is sent).
+        float -> prob_f32.  ``stamp``: Unix time in seconds, default now (a layer that forgets
+        weighs an ISM by its age).  A grid that is not 2-D, values that do not fit the
+        encoding or an invalid field raise :class:`InvalidIsmError` (nothing is sent).
 
         Each ISM carries an id (its Zenoh attachment) so the server can say what became of
         it: with ``wait=True`` this returns once the ISM is fused (a query then sees it) and

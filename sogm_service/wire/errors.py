@@ -39,6 +39,8 @@ ISM_CODES: Final[dict[str, str]] = {
     "name_too_long": "the robot or layer name is longer than its limit",
     "memory_budget": "the ISM would create tiles beyond the memory budget of a map without a "
                      "tile store",
+    "stale_stamp": "the ISM's stamp is so far behind the map's clock that its forgetting "
+                   "layer would keep nothing of it (stamps are Unix time in seconds)",
 }
 """Why a well-formed ISM cannot go into this map (:class:`IsmRejectedError`); scan matching adds
 ``match_<reason>`` (:class:`sogm_service.core.matching.params.MatchReason`)."""

@@ -354,7 +354,9 @@ def test_layers_and_map_reach_a_ros_subscriber_and_a_late_one(rig: Rig) -> None:
     rig.snaps.append(map_snapshot(tiled, window, stamp=9.5, method="max"))
     stack = tiled.sample(window, ["robot1/obstacle", "robot1/person"], "nearest")
     expect_layer = _expected_cells(stack[0])
-    expect_map = _expected_cells(stack.max(axis=0))  # P_M by hand
+    # P_M by hand: the max over the layers that observed a cell (not 0), unknown if none did
+    pooled = np.where(stack == 0, np.int16(-32768), stack).max(axis=0)
+    expect_map = _expected_cells(np.where(pooled == -32768, 0, pooled))
     assert not np.array_equal(expect_layer, expect_map)
 
     got: list[tuple[str, bytes, bytes]] = []

@@ -7,7 +7,8 @@ Each check raises the refusal with its code (:mod:`sogm_service.wire.errors`) an
 nothing; the caller counts and logs it as every other refusal.  The arithmetic lives in
 :mod:`sogm_service.core.map.footprint` (nothing proportional to the footprint is built).
 
-* ISMs: names (``name_too_long``), the world extent (``out_of_world``), the tiles the footprint
+* ISMs: names (``name_too_long``), a stamp its forgetting layer would keep nothing of
+  (``stale_stamp``), the world extent (``out_of_world``), the tiles the footprint
   touches (``too_large``), then under the map's lock a new layer (``too_many_layers``), a new
   robot (``too_many_robots``) and, without a tile store, the bytes of the tiles it may create
   (``memory_budget``).
@@ -27,7 +28,9 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
+from sogm_service.core import logodds
 from sogm_service.core.map import footprint as fp
+from sogm_service.core.map.forget import ForgetRules
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.service.config import ServiceConfig
@@ -66,6 +69,8 @@ class Admission:
         # queues): priced like resident bytes, released when the ISM is fused or fails.
         self._reserved = 0
         self._reserved_lock = threading.Lock()
+        self._forget = ForgetRules(config.map.forget)
+        self._clamp = logodds.clamp_limits(config.map.eps0)[1]  # the most a cell can hold
 
     # -- ISMs -----------------------------------------------------------------------------
     def check_names(self, layer: str | None, robot: str | None) -> None:
@@ -76,6 +81,23 @@ class Admission:
         if robot is not None and len(robot) > lim.max_robot_name:
             raise IsmRejectedError("name_too_long", f"the robot name has {len(robot)} "
                                    f"characters; the limit is {lim.max_robot_name}", "robot")
+
+    def check_stamp(self, stamp: float, layer: str, now: float) -> None:
+        """Refuse (``stale_stamp``) an ISM of a forgetting layer stamped so long before the
+        map's clock ``now`` that, read at that clock, no cell keeps a unit of its evidence
+        (:func:`~sogm_service.core.logodds.weightless_age` of the clamp): it would be acked
+        as fused and change nothing.  Layers that never forget take any stamp."""
+        half_life = self._forget.half_life(layer)
+        if half_life is None:
+            return
+        limit = logodds.weightless_age(half_life, self._clamp)
+        if not now - stamp > limit:  # also an empty map (now = -inf)
+            return
+        raise IsmRejectedError(
+            "stale_stamp", f"stamp {stamp:.17g} s is {now - stamp:.6g} s before the map's "
+            f"clock ({now:.17g} s); layer {layer[:64]!r} forgets with a half-life of "
+            f"{half_life:g} s and keeps nothing older than {limit:.6g} s (stamps are Unix "
+            "time in seconds)", "stamp")
 
     def footprint(self, msg: IsmMessage) -> fp.Footprint:
         """The ISM's footprint from its header: ``out_of_world`` or ``too_large`` refused."""
@@ -103,6 +125,7 @@ class Admission:
         admitted before and still queued for the fuse workers are priced by their
         reservations, so a burst cannot slip past the budget while they wait."""
         self.check_names(layer, robot)
+        self.check_stamp(msg.stamp, layer, tiled.now())
         foot = self.footprint(msg)
         if robot and fleet is not None:
             fleet.check_robot(robot)

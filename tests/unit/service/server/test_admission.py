@@ -94,3 +94,44 @@ def test_heavy_queries_beyond_the_bound_are_busy_with_a_retry_hint() -> None:
     with admission.heavy():  # slots come back
         pass
     assert stats.snapshot()[0]["queries_busy"] == 1
+
+
+def _forgetting(half_life: float) -> tuple[TiledMap, Admission]:
+    config = ServiceConfig.model_validate({
+        "map": {"resolution": RES, "tile_size": T, "forget": {"*/people": half_life}}})
+    tiled = TiledMap("default", "map", TileLattice(RES, T))
+    tiled.set_forget(config.map.forget)
+    return tiled, Admission(config, Stats())
+
+
+def _stamped(stamp: float) -> IsmMessage:
+    return _ism(0).model_copy(update={"stamp": stamp})
+
+
+def test_an_ism_its_forgetting_layer_would_keep_nothing_of_is_stale() -> None:
+    h, now = 10.0, 1.7e9
+    tiled, admission = _forgetting(h)
+    inc = logodds.increments(np.full((10, 10), 255, np.uint8), "prob_u8")  # at the clamp
+    geom = GridGeometry(RES, 10, 10, Pose2D(0.5, 0.5, 0.0))
+    tiled.fuse("r1/people", inc, geom, "nearest", stamp=now)
+    assert tiled.now() == now
+    limit = logodds.weightless_age(h, logodds.clamp_limits(0.001)[1])
+    # just within the limit: accepted, and the ISM still leaves evidence where it was put
+    admission.check_ism(_stamped(now - limit * 0.999), "r2/people", None, tiled)
+    tiled.fuse("r2/people", inc, geom, "nearest", stamp=now - limit * 0.999)
+    assert tiled.sample(geom, ["r2/people"], "nearest").max() >= 1
+    # just past it: refused from the header; had it been fused, it would hold nothing
+    with pytest.raises(IsmRejectedError) as err:
+        admission.check_ism(_stamped(now - limit * 1.001), "r3/people", None, tiled)
+    assert (err.value.code, err.value.parameter) == ("stale_stamp", "stamp")
+    assert "half-life of 10 s" in str(err.value) and "r3/people" in str(err.value)
+    assert "r3/people" not in tiled.layers  # nothing of the map was touched
+    tiled.fuse("r4/people", inc, geom, "nearest", stamp=now - limit * 1.001)
+    assert not tiled.sample(geom, ["r4/people"], "nearest").any()
+    # a stamp of 0 (the old default) into a layer already holding an ISM stamped now
+    with pytest.raises(IsmRejectedError, match="stale_stamp|keeps nothing"):
+        admission.check_ism(_stamped(0.0), "r1/people", None, tiled)
+    # layers that never forget take any stamp, and so does an empty map
+    admission.check_ism(_stamped(0.0), "r1/walls", None, tiled)
+    empty, fresh = _forgetting(h)
+    fresh.check_ism(_stamped(0.0), "r1/people", None, empty)
