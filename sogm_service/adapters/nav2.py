@@ -103,6 +103,27 @@ def trinary_pixels(values: npt.ArrayLike, kind: ValueKind, *,
     return px
 
 
+@dataclass(frozen=True)
+class TrinaryCounts:
+    """How many cells of a trinary map are free, occupied and unknown."""
+
+    free: int
+    occupied: int
+    unknown: int
+
+    def __str__(self) -> str:
+        return f"{self.free} free, {self.occupied} occupied, {self.unknown} unknown"
+
+
+def trinary_counts(pixels: npt.NDArray[np.uint8]) -> TrinaryCounts:
+    """The cells of :func:`trinary_pixels` by kind: what nav2 will plan through, avoid and
+    treat as unexplored."""
+    px = np.asarray(pixels)
+    return TrinaryCounts(int(np.count_nonzero(px == PIXEL_FREE)),
+                         int(np.count_nonzero(px == PIXEL_OCCUPIED)),
+                         int(np.count_nonzero(px == PIXEL_UNKNOWN)))
+
+
 def _yaml_float(v: float) -> str:
     return repr(float(v))
 

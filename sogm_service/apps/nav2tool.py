@@ -10,10 +10,11 @@ and both need the ros2 extra (pyyaml), imported only when the command runs.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
-from sogm_service.apps.options import command, fail, require_extra, subcommands
+from sogm_service.apps.options import PROG, command, fail, require_extra, subcommands
 
 
 def _connection(p: argparse.ArgumentParser) -> None:
@@ -39,7 +40,9 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--layers", default=None, metavar="A,B",
                    help="comma-separated layers (default: all)")
     p.add_argument("--method", choices=["max", "bayes"], default="max",
-                   help="Eq. 6 pooling of the layers")
+                   help="Eq. 6 pooling of the layers: max (a cell is occupied when a layer "
+                        "that observed it says so, free when those say free, unknown when "
+                        "none did) or bayes (the sum of their log-odds)")
     p.add_argument("--box", type=float, nargs=4, default=None,
                    metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
                    help="the region in metres (default: every tile of the map)")
@@ -74,6 +77,7 @@ def import_main(argv: list[str]) -> int:
 def export_nav2(args: argparse.Namespace) -> int:
     require_extra("ros2", "export nav2")
     from sogm_service.adapters.nav2 import export_nav2 as write_nav2
+    from sogm_service.adapters.nav2 import trinary_counts, trinary_pixels
     from sogm_service.client import MapClient
 
     with MapClient.connect(args.connect, map_name=args.map, timeout=args.timeout,
@@ -87,8 +91,12 @@ def export_nav2(args: argparse.Namespace) -> int:
                              width=xmax - xmin, height=ymax - ymin, layers=layers,
                              interp="nearest", encoding="logodds_i16")
     yml, pgm = write_nav2(args.out, fused.data, fused.geometry, kind="fixed", name=args.name)
+    counts = trinary_counts(trinary_pixels(fused.data, "fixed"))
     print(f"wrote {yml} and {pgm} ({fused.geometry.width}x{fused.geometry.height} cells at "
-          f"{fused.geometry.resolution} m)")
+          f"{fused.geometry.resolution} m: {counts})")
+    if counts.free == 0:
+        print(f"{PROG}: export nav2: warning: the map has no free cell, so nav2 can plan "
+              "through none (no layer chosen observed free space here)", file=sys.stderr)
     return 0
 
 
