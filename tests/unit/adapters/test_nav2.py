@@ -105,3 +105,12 @@ def test_read_nav2_scale_mode_negate_and_errors(tmp_path: Path) -> None:
     with pytest.raises(Nav2MapError) as e:
         read_nav2(tmp_path / "noimg.yaml")
     assert e.value.code == "not_found"
+
+
+def test_trinary_counts_say_what_nav2_can_plan_through() -> None:
+    from sogm_service.adapters.nav2 import trinary_counts, trinary_pixels
+
+    fixed = np.array([[0, -4000, -4000], [4000, 0, -100]], np.int16)  # -100: p = 0.475
+    counts = trinary_counts(trinary_pixels(fixed, "fixed"))
+    assert (counts.free, counts.occupied, counts.unknown) == (2, 1, 3)
+    assert str(counts) == "2 free, 1 occupied, 3 unknown"
