@@ -187,3 +187,14 @@ def spy_mosaics(tiled: Any) -> list[tuple[int, ...]]:
 
     tiled.mosaic = spy
     return built
+
+
+@pytest.fixture(scope="session")
+def seaweedfs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """One real S3 server (SeaweedFS from the test extra's wheel) for the whole session, on
+    127.0.0.1, its data in a temporary directory, ended by its pid (``tests/s3server.py``)."""
+    from tests.s3server import start_seaweedfs
+
+    server = start_seaweedfs(tmp_path_factory.mktemp("seaweedfs"))
+    yield server
+    server.stop()

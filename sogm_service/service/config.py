@@ -13,7 +13,15 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    JsonValue,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from sogm_service.client.session import ZenohSettings
 from sogm_service.core import logodds
@@ -153,6 +161,22 @@ class StorageSettings(_Section):
         "Dirty tiles are written this often (s): what a crash may lose.", "s", gt=0)] = 10.0
     memory_budget_mb: Annotated[float, _limit("storage.memory_budget_mb", gt=0)
                                 ] = limits.MEMORY_BUDGET_MB
+
+
+class StoreSettings(_Section):
+    """Tiles on an object store instead of a directory: several servers of one map (a
+    cluster) may share one bucket.  Region and credentials come from the usual AWS
+    environment variables and config files (boto3)."""
+
+    url: Annotated[str | None, _doc(
+        "The tile store on an object store, s3://bucket/prefix (instead of "
+        "storage.directory); unset: the directory store, if any.", "",
+        "s3://sogm-tiles/site-a", pattern=r"^s3://[a-z0-9][a-z0-9.\-]{1,61}[a-z0-9](/.*)?$")
+    ] = None
+    endpoint_url: Annotated[str | None, _doc(
+        "The S3 endpoint (a SeaweedFS or MinIO server, a regional endpoint); unset: the "
+        "cloud's default for the region.", "", "http://127.0.0.1:8333",
+        pattern=r"^https?://")] = None
 
 
 class LimitSettings(_Section):
@@ -300,12 +324,19 @@ class ServiceConfig(_Section):
         pattern=r"^[A-Za-z0-9_\-/]+$")] = DEFAULT_PREFIX
     tiles: TileSettings = TileSettings()
     storage: StorageSettings = StorageSettings()
+    store: StoreSettings = StoreSettings()
     limits: LimitSettings = LimitSettings()
     zenoh: ZenohSettings = ZenohSettings()
     ros2: Ros2Settings = Ros2Settings()
     cluster: ClusterSettings = ClusterSettings()
     log_level: Annotated[Literal["debug", "info", "warning", "error"], _doc(
         "The log level.")] = "info"
+
+    @model_validator(mode="after")
+    def _one_store(self) -> ServiceConfig:
+        if self.store.url is not None and self.storage.directory is not None:
+            raise ValueError("store.url and storage.directory name two tile stores: set one")
+        return self
 
     @field_validator("ism")
     @classmethod

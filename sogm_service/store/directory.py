@@ -114,6 +114,8 @@ class DirectoryStore:
     Thread-safe: the writer thread writes while the server thread indexes and loads.
     """
 
+    shared = False  # one process owns a store directory (its lock)
+
     def __init__(self, directory: Path | str, map_name: str, resolution: float, tile_size: int,
                  frame: str | None = "map", datum: GeodeticLike | None = None,
                  level: int = DEFAULT_LEVEL, readonly: bool = False, lock: bool = True) -> None:

@@ -147,6 +147,15 @@ class StoreLockedError(SogmError, RuntimeError):
         self.pid = pid
 
 
+class StoreConflictError(SogmError, RuntimeError):
+    """A tile write refused by a shared store: the stored tile changed since this server last
+    saw it and holds an ISM this server's copy lacks (another server owns it now)."""
+
+    def __init__(self, message: str, index: tuple[int, int]) -> None:
+        super().__init__("store_conflict", message)
+        self.index = index
+
+
 class ClientError(RuntimeError):
     """Base of every error the Python client raises."""
 

@@ -27,14 +27,22 @@ from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server.allocator import give_back
 from sogm_service.service.server.stats import Stats
 from sogm_service.store.directory import DirectoryStore
+from sogm_service.store.protocol import TileStore
 from sogm_service.store.writer import TileWriter
-from sogm_service.wire.errors import StoreLockedError
+from sogm_service.wire.errors import StoreConflictError, StoreLockedError
 
 log = logging.getLogger(__name__)
 
 
-def open_store(config: ServiceConfig) -> DirectoryStore | None:
-    """The configured tile store, locked for this process (None without a directory)."""
+def open_store(config: ServiceConfig) -> TileStore | None:
+    """The configured tile store: a directory locked for this process, or an object store
+    (``[store] url``) other servers may share; None without either."""
+    if config.store.url is not None:
+        from sogm_service.store.s3 import S3Store  # boto3 only when a site uses it
+
+        return S3Store(config.store.url, config.map.name, config.map.resolution,
+                       config.map.tile_size, frame=config.map.frame, datum=config.map.datum,
+                       endpoint_url=config.store.endpoint_url)
     directory = config.storage.directory
     if directory is None:
         return None
@@ -56,7 +64,7 @@ class Checkpointer:
         self.config = config
         self.stats = stats
         self._keep = keep
-        self.store: DirectoryStore | None = None
+        self.store: TileStore | None = None
         self.writer: TileWriter | None = None
         self._tiled: TiledMap | None = None
         self._budget = int(config.storage.memory_budget_mb * 1e6)
@@ -84,7 +92,8 @@ class Checkpointer:
             self.stats.count("store_problems")
             log.warning("tile store: skipped %s: %s", problem.path, problem.reason)
         self.writer = TileWriter(self.store, on_saved=self._saved, on_error=self._failed)
-        log.info("tile store %s: %d tiles indexed, %d skipped", self.store.directory,
+        log.info("tile store %s: %d tiles indexed, %d skipped",
+                 self.config.store.url or self.config.storage.directory,
                  len(index), len(self.store.problems))
 
     def load(self, i: int, j: int) -> LoaderResult | None:
@@ -182,6 +191,8 @@ class Checkpointer:
 
     def _failed(self, index: TileIndex, token: Any, exc: BaseException) -> None:
         self.stats.count("tile_write_errors")
+        if isinstance(exc, StoreConflictError):  # a shared store holds a newer copy
+            self.stats.count("store_writes_fenced")
 
     def writer_full(self) -> bool:
         """The store's writer holds ``max_writer_queue_mb`` of snapshots or more."""

@@ -1,0 +1,430 @@
+"""The object-store backend of the tile store: one object per tile in an S3 bucket
+(``[store] url = "s3://bucket/prefix"``), in the same tile format and under the same names as
+the directory store's files (:mod:`sogm_service.wire.tilefile`).
+
+* **Complete or absent**: an S3 PUT replaces an object whole, so a reader sees the old or the
+  new tile, never a mix; a crash mid-upload leaves the old object.
+* **Validated**: a tile object failing any check of the format is never returned; it is
+  copied to ``<prefix>/quarantine/`` with a ``.reason.txt`` beside it, then deleted (only if
+  it is still the object that was read), and reported in :attr:`S3Store.problems`.
+* **Fenced writes**: several servers may share one bucket (a cluster), so every write is
+  conditional on the object as this store last saw it: ``IfMatch`` on its ETag, or
+  ``IfNoneMatch="*"`` for a tile it saw absent or never saw.  When the condition fails,
+  another server wrote the tile since; the store reads that object's header and writes over
+  it only if this copy holds every ISM the stored one holds (by their applied marks: the last
+  ISM fused per ISM key).  Otherwise the write is refused with ``StoreConflictError``: a
+  server that lost a tile (paused, partitioned) never overwrites a newer copy.
+* **Credentials and region** come from boto3's usual chain (the ``AWS_*`` environment, the
+  shared config and credentials files, instance roles); ``endpoint_url`` points it at another
+  S3 server (SeaweedFS, MinIO, a cloud's regional endpoint).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import PurePath, PurePosixPath
+from typing import Any, Final
+
+from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
+from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
+from sogm_service.store.protocol import StoreProblem, TileFileInfo
+from sogm_service.wire import encodings
+from sogm_service.wire.errors import ConfigError, StoreConflictError, TileFormatError
+from sogm_service.wire.tilefile import (
+    _PREFIX,
+    DEFAULT_LEVEL,
+    SUFFIX,
+    Expectation,
+    Fixed,
+    StoredTile,
+    TileHeader,
+    _file_stem,
+    check_expectation,
+    marks_of,
+    parse_header,
+    parse_prefix,
+    tile_file_name,
+    tile_from_bytes,
+    tile_header,
+    tile_to_bytes,
+)
+
+log = logging.getLogger(__name__)
+
+SCHEME: Final = "s3://"
+QUARANTINE: Final = "quarantine"
+HEAD_BYTES: Final = 4096  # one ranged GET reads a tile's header (longer ones take a second)
+WRITE_ATTEMPTS: Final = 4  # a write that keeps meeting newer objects it may replace gives up
+_BUCKET = re.compile(r"[a-z0-9][a-z0-9.\-]{1,61}[a-z0-9]")
+_PRECONDITION = {"PreconditionFailed", "ConditionalRequestConflict", "412"}
+_ABSENT = {"NoSuchKey", "404", "NotFound"}
+
+
+@dataclass(frozen=True)
+class S3Location:
+    """A bucket and a key prefix (no slash at either end; empty: the bucket's root)."""
+
+    bucket: str
+    prefix: str = ""
+
+    @classmethod
+    def parse(cls, url: str) -> S3Location:
+        """``s3://bucket/prefix`` (the prefix optional); ConfigError for anything else."""
+        if not url.startswith(SCHEME):
+            raise ConfigError(f"a store URL starts with {SCHEME} (got {url!r})", "store.url")
+        bucket, _, prefix = url[len(SCHEME):].partition("/")
+        if not _BUCKET.fullmatch(bucket):
+            raise ConfigError(f"{bucket!r} is not an S3 bucket name (3-63 characters: "
+                              "lower-case letters, digits, dots and hyphens)", "store.url")
+        return cls(bucket, prefix.strip("/"))
+
+    @property
+    def url(self) -> str:
+        return f"{SCHEME}{self.bucket}/{self.prefix}" if self.prefix else f"{SCHEME}{self.bucket}"
+
+    def key(self, name: str) -> str:
+        """The object key of ``name`` under the prefix."""
+        return f"{self.prefix}/{name}" if self.prefix else name
+
+    def where(self, key: str) -> PurePath:
+        """How problems and listings name an object: ``bucket/key``."""
+        return PurePosixPath(self.bucket, key)
+
+
+def s3_client(endpoint_url: str | None = None) -> Any:
+    """A boto3 S3 client (credentials and region from boto3's usual chain)."""
+    try:
+        import boto3
+        from botocore.config import Config
+    except ImportError:  # pragma: no cover - the s3 extra is part of the test extra
+        raise ConfigError("an s3:// store needs boto3: pip install 'sogm-service[s3]'",
+                          "store.url") from None
+    config = Config(retries={"max_attempts": 5, "mode": "standard"}, connect_timeout=5,
+                    read_timeout=30, s3={"addressing_style": "path"})
+    # A session of its own: boto3's default session keeps the credentials it first found.
+    return boto3.session.Session().client("s3", endpoint_url=endpoint_url, config=config)
+
+
+def error_code(exc: BaseException) -> str | None:
+    """The S3 error code of a botocore ``ClientError`` (None for any other exception)."""
+    response = getattr(exc, "response", None)
+    if not isinstance(response, dict):
+        return None
+    return str(response.get("Error", {}).get("Code", "")) or None
+
+
+class S3Objects:
+    """The tile objects under one location: listing, reading and writing whole objects."""
+
+    def __init__(self, location: S3Location, client: Any) -> None:
+        self.location = location
+        self.client = client
+
+    def list(self, start: str = "") -> Iterator[tuple[str, int, str]]:
+        """``(key, size, etag)`` of every tile object directly under the prefix whose name
+        starts with ``start`` (quarantined ones, in a sub-folder, are left out)."""
+        base = self.location.key("")
+        pages = self.client.get_paginator("list_objects_v2").paginate(
+            Bucket=self.location.bucket, Prefix=base + start)
+        for page in pages:
+            for obj in page.get("Contents", []):
+                key = str(obj["Key"])
+                if key.endswith(SUFFIX) and "/" not in key[len(base):]:
+                    yield key, int(obj["Size"]), str(obj["ETag"])
+
+    def get(self, key: str, first: int | None = None) -> tuple[bytes, str] | None:
+        """``(bytes, etag)`` of an object (only its ``first`` bytes if given), or None."""
+        extra = {} if first is None else {"Range": f"bytes=0-{first - 1}"}
+        try:
+            got = self.client.get_object(Bucket=self.location.bucket, Key=key, **extra)
+        except Exception as exc:
+            code = error_code(exc)
+            if code in _ABSENT:
+                return None
+            if code == "InvalidRange":  # an empty object
+                return b"", self.etag(key) or ""
+            raise
+        return got["Body"].read(), str(got["ETag"])
+
+    def etag(self, key: str) -> str | None:
+        try:
+            return str(self.client.head_object(Bucket=self.location.bucket, Key=key)["ETag"])
+        except Exception as exc:
+            if error_code(exc) in _ABSENT:
+                return None
+            raise
+
+    def put(self, key: str, blob: bytes, **condition: str) -> str:
+        """Store ``blob`` (``IfMatch``/``IfNoneMatch`` as given); the new object's ETag."""
+        got = self.client.put_object(Bucket=self.location.bucket, Key=key, Body=blob,
+                                     ContentType=encodings.TILE, **condition)
+        return str(got["ETag"])
+
+    def header(self, key: str) -> tuple[TileHeader, int, str] | None:
+        """``(header, size the header implies, etag)`` read with one or two ranged GETs, or
+        None when absent; TileFormatError when the object does not start like a tile."""
+        got = self.get(key, HEAD_BYTES)
+        if got is None:
+            return None
+        head, etag = got
+        _, start = parse_prefix(head[:_PREFIX.size])
+        if start > len(head):
+            more = self.get(key, start)
+            if more is None:
+                return None
+            head, etag = more
+        header, fields, start = parse_header(head[:start])
+        return header, start + int(fields["payload_len"]), etag
+
+
+def holds_all(ours: dict[str, Mark], theirs: dict[str, Mark]) -> bool:
+    """Whether a copy with marks ``ours`` holds every ISM one with marks ``theirs`` holds:
+    per ISM key, the same last ISM or a later one."""
+    for key, mark in theirs.items():
+        mine = ours.get(key)
+        if mine is None or (mine != mark and mine[0] <= mark[0]):
+            return False
+    return True
+
+
+class S3Store:
+    """The tiles of one map in an S3 bucket (module docstring: format and guarantees).
+
+    Thread-safe: the writer thread writes while the server thread indexes and loads."""
+
+    shared = True  # other servers may write the same objects
+
+    def __init__(self, location: S3Location | str, map_name: str, resolution: float,
+                 tile_size: int, frame: str | None = "map", datum: GeodeticLike | None = None,
+                 level: int = DEFAULT_LEVEL, readonly: bool = False,
+                 endpoint_url: str | None = None, client: Any = None) -> None:
+        """``frame``: the map frame every tile must carry (None: any, for inspection tools).
+        ``readonly``: never write, quarantine or delete (for inspection tools)."""
+        self.location = S3Location.parse(location) if isinstance(location, str) else location
+        self.expect = Expectation(map_name, float(resolution), int(tile_size), frame)
+        self.level = level
+        self.readonly = readonly
+        self.plane = None if datum is None else LocalTangentPlane(datum)
+        self.problems: list[StoreProblem] = []
+        self.objects = S3Objects(self.location, client or s3_client(endpoint_url))
+        self.writes_fenced = 0
+        self._lock = threading.RLock()
+        self._index: dict[TileIndex, TileFileInfo] = {}
+        self._etags: dict[TileIndex, str | None] = {}  # as last seen; None: seen absent
+
+    @property
+    def url(self) -> str:
+        return self.location.url
+
+    def close(self) -> None:
+        """Nothing to release (boto3's connections close with the process)."""
+
+    def __enter__(self) -> S3Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- names ----------------------------------------------------------------------------
+    def key_for(self, i: int, j: int) -> str:
+        e = self.expect
+        return self.location.key(tile_file_name(e.map_name, e.resolution, e.tile_size, i, j))
+
+    def header_for(self, i: int, j: int, layers: Sequence[str],
+                   stamp: float, decay: dict[str, float] | None = None,
+                   applied: dict[str, Mark] | None = None, version: int = 0) -> TileHeader:
+        """The header this store writes for tile ``(i, j)``."""
+        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay, applied, version)
+
+    # -- index ----------------------------------------------------------------------------
+    def index(self) -> dict[TileIndex, TileFileInfo]:
+        """List the map's objects and check every tile header (one ranged GET each)."""
+        e = self.expect
+        found: dict[TileIndex, TileFileInfo] = {}
+        for key, size, _ in self.objects.list(_file_stem(e.map_name, e.resolution,
+                                                         e.tile_size) + "_"):
+            info = self._index_one(key, size)
+            if info is not None:
+                found[info.header.index] = info
+        with self._lock:
+            self._index = found
+            return dict(found)
+
+    def _index_one(self, key: str, size: int) -> TileFileInfo | None:
+        etag = None
+        try:
+            got = self.objects.header(key)
+            if got is None:
+                return None  # deleted since the listing
+            header, expected, etag = got
+            if size != expected:
+                what = "truncated" if size < expected else "trailing bytes"
+                raise TileFormatError(f"{what}: object is {size} bytes, header says {expected}")
+            check_expectation(header, self.expect)
+            if self.location.key(header.file_name()) != key:
+                raise TileFormatError(f"object name disagrees with header (tile "
+                                      f"{header.index} belongs in {header.file_name()})")
+        except TileFormatError as exc:
+            self._reject(key, exc.reason, etag or self.objects.etag(key))
+            return None
+        with self._lock:
+            self._etags[header.index] = etag
+        return TileFileInfo(header, self.location.where(key), size)
+
+    def indexed(self) -> dict[TileIndex, TileFileInfo]:
+        """The index as last listed and updated by writes (no request)."""
+        with self._lock:
+            return dict(self._index)
+
+    def __contains__(self, index: object) -> bool:
+        with self._lock:
+            return index in self._index
+
+    # -- reading --------------------------------------------------------------------------
+    def read_bytes(self, i: int, j: int) -> bytes | None:
+        """The validated bytes of tile ``(i, j)`` (for ``tiles/<i>/<j>`` replies)."""
+        got = self._read_valid(i, j)
+        return None if got is None else got[0]
+
+    def load(self, i: int, j: int) -> StoredTile | None:
+        """Tile ``(i, j)``, or None when absent or rejected (then quarantined).  Errors of
+        the object store itself propagate: answering None would start an empty tile."""
+        got = self._read_valid(i, j)
+        return None if got is None else got[1]
+
+    def loader(self, i: int, j: int) -> LoaderResult | None:
+        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiletypes.Loader`."""
+        tile = self.load(i, j)
+        return None if tile is None else tile.as_loader_result()
+
+    def _read_valid(self, i: int, j: int) -> tuple[bytes, StoredTile] | None:
+        key = self.key_for(i, j)
+        got = self.objects.get(key)
+        if got is None:
+            with self._lock:
+                self._index.pop((i, j), None)
+                self._etags[(i, j)] = None
+            return None
+        blob, etag = got
+        try:
+            tile = tile_from_bytes(blob, self.expect)
+            if tile.header.index != (i, j):
+                raise TileFormatError(f"object of tile {(i, j)} holds tile {tile.header.index}")
+        except TileFormatError as exc:
+            self._reject(key, exc.reason, etag)
+            return None
+        with self._lock:
+            self._etags[(i, j)] = etag
+        return blob, tile
+
+    # -- writing --------------------------------------------------------------------------
+    def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
+              stamp: float, decay: dict[str, float] | None = None,
+              applied: dict[str, Mark] | None = None, version: int = 0) -> TileFileInfo:
+        """Encode and store one tile, fenced (module docstring); StoreConflictError when a
+        newer copy is stored."""
+        header = self.header_for(i, j, layers, stamp, decay, applied, version)
+        return self._put(header, tile_to_bytes(header, data, self.level))
+
+    def write_bytes(self, blob: bytes) -> TileFileInfo:
+        """Validate a tile received from elsewhere (an import) and store it as is, fenced."""
+        return self._put(tile_from_bytes(blob, self.expect).header, blob)
+
+    def _put(self, header: TileHeader, blob: bytes) -> TileFileInfo:
+        if self.readonly:
+            raise PermissionError(f"store {self.url} was opened read-only")
+        index, key, ours = header.index, self.key_for(header.i, header.j), marks_of(header)
+        for _ in range(WRITE_ATTEMPTS):
+            with self._lock:
+                seen = self._etags.get(index)
+            try:
+                etag = self.objects.put(key, blob, **({"IfMatch": seen} if seen
+                                                      else {"IfNoneMatch": "*"}))
+            except Exception as exc:
+                if error_code(exc) not in _PRECONDITION:
+                    raise
+                self._check_replaceable(index, key, ours)
+                continue
+            info = TileFileInfo(header, self.location.where(key), len(blob))
+            with self._lock:
+                self._etags[index] = etag
+                self._index[index] = info
+            return info
+        raise StoreConflictError(f"tile {index} at {self.url} kept changing during "
+                                 f"{WRITE_ATTEMPTS} writes", index)
+
+    def _check_replaceable(self, index: TileIndex, key: str, ours: dict[str, Mark]) -> None:
+        """The stored object changed: learn its ETag if this copy may replace it, else raise
+        StoreConflictError (it holds an ISM this copy lacks)."""
+        try:
+            got = self.objects.header(key)
+        except TileFormatError:  # a damaged object holds nothing to keep
+            got = None
+            etag = self.objects.etag(key)
+        else:
+            etag = None if got is None else got[2]
+        if got is not None and not holds_all(ours, marks_of(got[0])):
+            self.writes_fenced += 1
+            log.warning("tile %s at %s: not written, the stored copy holds ISMs this one "
+                        "lacks (another server wrote it)", index, self.url)
+            raise StoreConflictError(f"tile {index} at {self.url} holds ISMs this copy lacks "
+                                     "(another server wrote it)", index)
+        with self._lock:
+            self._etags[index] = etag
+
+    def remove(self, i: int, j: int) -> bool:
+        """Delete tile ``(i, j)``'s object if it is still the one this store last saw; True
+        when it was deleted."""
+        if self.readonly:
+            raise PermissionError(f"store {self.url} was opened read-only")
+        key = self.key_for(i, j)
+        with self._lock:
+            self._index.pop((i, j), None)
+            seen = self._etags.pop((i, j), None)
+        if seen is None:
+            return False
+        try:
+            self.objects.client.delete_object(Bucket=self.location.bucket, Key=key,
+                                              IfMatch=seen)
+        except Exception as exc:
+            if error_code(exc) in _PRECONDITION | _ABSENT:
+                return False
+            raise
+        return True
+
+    # -- rejects --------------------------------------------------------------------------
+    def _reject(self, key: str, reason: str, etag: str | None) -> None:
+        """Report a bad object and move it to ``quarantine/`` (read-only stores only
+        report); the original is deleted only if it is still the object that was read."""
+        moved: PurePath | None = None
+        if not self.readonly and etag:
+            moved = self._quarantine(key, reason, etag)
+        with self._lock:
+            for index, info in list(self._index.items()):
+                if info.path == self.location.where(key):
+                    del self._index[index]
+            self.problems.append(StoreProblem(self.location.where(key), reason,
+                                              moved))
+        log.warning("tile object %s rejected: %s%s", self.location.where(key), reason,
+                    f"; moved to {moved}" if moved else "")
+
+    def _quarantine(self, key: str, reason: str, etag: str) -> PurePath | None:
+        name = key.rsplit("/", 1)[-1]
+        target = self.location.key(f"{QUARANTINE}/{name}.{time.strftime('%Y%m%dT%H%M%S')}-"
+                                   f"{time.monotonic_ns()}")
+        client, bucket = self.objects.client, self.location.bucket
+        try:
+            client.copy_object(Bucket=bucket, Key=target, CopySourceIfMatch=etag,
+                               CopySource={"Bucket": bucket, "Key": key})
+            client.put_object(Bucket=bucket, Key=target + ".reason.txt",
+                              Body=(reason + "\n").encode(), ContentType="text/plain")
+            client.delete_object(Bucket=bucket, Key=key, IfMatch=etag)
+        except Exception as exc:
+            log.error("could not quarantine %s: %s", self.location.where(key), exc)
+            return None
+        return self.location.where(target)
