@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -27,6 +28,7 @@ from sogm_service.apps.options import (
 EPILOG = """examples:
   sogm-service query submap --x 2 --y 1 --yaw-deg 30 --width 6 --height 4 --png sub.png
   sogm-service query fused --method max --width 20 --height 20 --json
+  sogm-service query submap --layers '*/laser/obstacle' --width 20 --height 20 --json
   sogm-service query supercells --x 2 --y 2 --width 6.4 --height 6.4 --png graph.png
   sogm-service query info
 """
@@ -72,7 +74,9 @@ def _window_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--resolution", type=float, default=None, metavar="M",
                    help="cell size of the answer (m; default: the map's)")
     g.add_argument("--layers", default=None, metavar="A,B",
-                   help="comma-separated layers (default: all)")
+                   help="comma-separated layers (default: all); a glob pattern names a class, "
+                        "its layers fused (Bayes) into one named by the pattern: "
+                        "'*/laser/obstacle' is every robot's (quote it in a shell)")
     g.add_argument("--interp", default="biodds", choices=["biodds", "bilinear", "nearest"],
                    help="resampling: biodds (the paper's Eq. 3-5: bilinear in log-odds), "
                         "bilinear (in probability), nearest")
@@ -207,10 +211,12 @@ def _run_supercells(client: Any, args: argparse.Namespace, window: dict[str, Any
             "kind": "supercells", "nodes": [n.model_dump() for n in reply.nodes],
             "edges": edges, "width": reply.width, "height": reply.height,
             "resolution": reply.resolution, "layers": list(reply.layers),
+            "classes": reply.classes or {},
             "origin": reply.origin.model_dump(), "written": written}))
         return 0
     print(f"supercells: {len(reply.nodes)} nodes, {edges} edges over {reply.width}x"
-          f"{reply.height} cells at {reply.resolution} m, layers {reply.layers}")
+          f"{reply.height} cells at {reply.resolution} m, layers {reply.layers}"
+          f"{_classes_text(reply.classes or {})}")
     for node in reply.nodes[:5]:
         print(f"  #{node.id}: ({node.x:.2f}, {node.y:.2f}) m, {node.area_m2:.2f} m2, "
               f"mean P {[round(p, 2) for p in node.mean_probability]}")
@@ -229,19 +235,32 @@ def _print_grid(result: Any, as_json: bool, written: list[str]) -> None:
             "kind": "fused" if result.method else "submap", "method": result.method,
             "width": g.width, "height": g.height, "resolution": g.resolution,
             "origin": {"x": g.origin.x, "y": g.origin.y, "yaw": g.origin.yaw},
-            "layers": list(result.layers), "encoding": result.encoding,
+            "layers": list(result.layers), "classes": result.classes,
+            "encoding": result.encoding,
             "known_fraction": round(known, 6), "occupied_fraction": round(occupied, 6),
             "stamp": result.stamp, "written": written}))
         return
     print(f"{'fused (' + result.method + ')' if result.method else 'submap'}: "
           f"{g.width}x{g.height} cells at {g.resolution} m, origin ({g.origin.x:.3f}, "
-          f"{g.origin.y:.3f}, {math.degrees(g.origin.yaw):.1f} deg), layers {result.layers}")
+          f"{g.origin.y:.3f}, {math.degrees(g.origin.yaw):.1f} deg), layers {result.layers}"
+          f"{_classes_text(result.classes)}")
     print(f"known cells: {known * 100:.1f} %, occupied (p > 0.5): {occupied * 100:.1f} %")
     if known == 0.0:
         print("note: no cell of this window has been observed (is it inside the map? "
               "'sogm-service query info' gives the bounds)", file=sys.stderr)
     for path in written:
         print(f"wrote {path}")
+
+
+def file_part(layer: str) -> str:
+    """A layer's name or pattern as part of a file name: ``*/laser/obstacle`` ->
+    ``all_laser_obstacle``, ``robot?/x`` -> ``robot-_x`` (no glob or path characters)."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", layer.replace("*", "all").replace("?", "-"))
+
+
+def _classes_text(classes: dict[str, list[str]]) -> str:
+    return "".join(f"\n  class {name}: {' + '.join(members)}"
+                   for name, members in classes.items())
 
 
 def _write_grid_outputs(result: Any, png: Path | None, npy: Path | None) -> list[str]:
@@ -263,7 +282,7 @@ def _write_grid_outputs(result: Any, png: Path | None, npy: Path | None) -> list
         return written
     for k, layer in enumerate(result.layers):
         path = png if len(result.layers) == 1 else png.with_name(
-            f"{png.stem}_{layer.replace('/', '_')}{png.suffix}")
+            f"{png.stem}_{file_part(layer)}{png.suffix}")
         save_grid_png(path, p[k], result.geometry, title=f"layer {layer}")
         written.append(str(path))
     return written

@@ -183,7 +183,13 @@ class MapClient:
                height: float = 10.0, resolution: float | None = None,
                layers: list[str] | None = None, interp: str = "biodds",
                encoding: str = "prob_f32") -> GridResult:
-        """The chosen layers (default all) resampled into a window centred on ``(x, y)``."""
+        """The chosen layers (default all) resampled into a window centred on ``(x, y)``.
+
+        Each entry of ``layers`` is a layer's name or a glob pattern naming a class
+        (``"*/laser/obstacle"``: every robot's laser obstacles), whose matching layers come
+        back fused by the Bayesian rule as one plane named by the pattern; the result's
+        ``classes`` lists each pattern's members.  A name or pattern matching no layer is
+        refused (``unknown_layer``)."""
         params = dict(x=x, y=y, yaw=yaw, width=width, height=height, resolution=resolution,
                       layers=layers, interp=interp, encoding=encoding,
                       compression=self.compression)
@@ -193,14 +199,17 @@ class MapClient:
               width: float = 10.0, height: float = 10.0, resolution: float | None = None,
               layers: list[str] | None = None, interp: str = "biodds",
               encoding: str = "prob_f32") -> GridResult:
-        """Eq. 6 over the chosen layers: ``bayes`` (P_B) or ``max`` (P_M)."""
+        """Eq. 6 over the chosen layers: ``bayes`` (P_B) or ``max`` (P_M).  A glob pattern
+        in ``layers`` pools its class (its layers' Bayesian fusion) as one layer: ``method``
+        then pools the classes, e.g. ``layers=["*/laser/obstacle", "*/camera/person"]``."""
         params = dict(method=method, x=x, y=y, yaw=yaw, width=width, height=height,
                       resolution=resolution, layers=layers, interp=interp, encoding=encoding,
                       compression=self.compression)
         return grid_result(self._get(FusedReply, "fused", params))
 
     def supercells(self, timeout: float | None = None, **params: Any) -> SupercellReply:
-        """The SEVDS topometric graph of a window (same window parameters + SEVDS's).
+        """The SEVDS topometric graph of a window (same window parameters + SEVDS's; a glob
+        pattern in ``layers`` is one class, one entry of each node's feature vector).
 
         Waits up to ``timeout`` (default :attr:`supercells_timeout`, 90 s) in all: a server
         that is still compiling its kernels (the first start after an install) answers

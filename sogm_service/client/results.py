@@ -5,7 +5,7 @@ error reply raises.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -21,7 +21,10 @@ from sogm_service.wire.queries import FusedReply, GridReply
 
 @dataclass(frozen=True)
 class GridResult:
-    """A sub-map or fused map: ``data`` is ``(layers, H, W)`` (fused: ``(H, W)``)."""
+    """A sub-map or fused map: ``data`` is ``(layers, H, W)`` (fused: ``(H, W)``).
+
+    A glob pattern among the layers asked names a class, one plane of ``data``; ``classes``
+    gives each pattern's member layers (empty without a pattern)."""
 
     geometry: GridGeometry
     layers: list[str]
@@ -29,6 +32,7 @@ class GridResult:
     data: npt.NDArray[Any]
     stamp: float
     method: str | None = None
+    classes: dict[str, list[str]] = field(default_factory=dict)
 
     def probabilities(self) -> npt.NDArray[np.float32]:
         """The cells as probabilities whatever the reply encoding (unknown -> 0.5)."""
@@ -41,7 +45,7 @@ def grid_result(reply: GridReply | FusedReply) -> GridResult:
                             Pose2D(reply.origin.x, reply.origin.y, reply.origin.yaw))
     method = reply.method if isinstance(reply, FusedReply) else None
     return GridResult(geometry, list(reply.layers), reply.encoding, reply.data.array(),
-                      reply.stamp, method)
+                      reply.stamp, method, dict(reply.classes or {}))
 
 
 def service_error(payload: bytes) -> ServiceError:

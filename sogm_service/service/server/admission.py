@@ -197,9 +197,12 @@ class Admission:
                                    f"world of +-{extent:g} m", "x")
 
     # -- queries --------------------------------------------------------------------------
-    def check_query(self, req: WindowRequest, n_layers: int) -> fp.WindowPrice:
+    def check_query(self, req: WindowRequest, n_layers: int,
+                    reply_layers: int | None = None) -> fp.WindowPrice:
         """Price a window query before sampling: refused unless every number is sane, the
-        centre in the world, the cells returned and read and the reply bytes in their limits.
+        centre in the world, the cells returned and read (``n_layers`` sampled) and the reply
+        bytes (``reply_layers`` planes, default ``n_layers``: a class replies as one) in their
+        limits.
         """
         lim = self.limits
         res = req.resolution or self.resolution
@@ -213,6 +216,7 @@ class Admission:
                              f"{req.height:.6g} m at {res:.6g} m cells has no finite cell "
                              "count", "width")
         n = max(n_layers, 1)
+        n_out = n if reply_layers is None else max(reply_layers, 1)
         if price.cells * n > lim.max_query_cells:
             raise QueryError("window_too_large",
                              f"{price.cells} cells x {n_layers} layers exceed the limit of "
@@ -231,10 +235,10 @@ class Admission:
                 raise QueryError("window_too_large",
                                  f"supercells of {price.cells} cells exceed the limit of "
                                  f"{lim.max_supercell_cells}", "width")
-            reply = self._supercell_bytes(price, n, req.labels, req.block_size)
+            reply = self._supercell_bytes(price, n_out, req.labels, req.block_size)
         else:
             per = _BYTES_PER_CELL.get(req.encoding, 4)
-            layers_out = 1 if hasattr(req, "method") else n
+            layers_out = 1 if hasattr(req, "method") else n_out
             reply = price.cells * layers_out * per + _REPLY_OVERHEAD
         if reply > lim.max_reply_bytes:
             raise QueryError("reply_too_large", f"the reply would take about {reply} bytes; "

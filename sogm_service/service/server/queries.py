@@ -14,16 +14,18 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
+from sogm_service.core import classes as cls_
 from sogm_service.core import logodds
+from sogm_service.core.classes import LayerClass
 from sogm_service.core.geometry import GridGeometry, window_geometry
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.wire import codec
 from sogm_service.wire import compression as zstd
-from sogm_service.wire.codec import unpack, validate
+from sogm_service.wire.codec import validation_error_to_decode_error
 from sogm_service.wire.compression import Compression
-from sogm_service.wire.errors import DecodeError, QueryError
+from sogm_service.wire.errors import QueryError
 from sogm_service.wire.messages import PoseModel, WireArray
 from sogm_service.wire.queries import (
     FusedReply,
@@ -34,6 +36,7 @@ from sogm_service.wire.queries import (
     SupercellReply,
     SupercellRequest,
     WindowRequest,
+    unpack_body,
 )
 
 if TYPE_CHECKING:
@@ -43,63 +46,95 @@ R = TypeVar("R", bound=BaseModel)  # a request model: a window, or the tiles cha
 
 
 def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = None) -> R:
-    """Selector parameters (strings) and an optional msgpack map body -> a request model.
+    """Selector parameters (strings) and an optional msgpack map body -> a request model, typed
+    strictly; any problem is ``bad_parameter`` naming the parameter.
 
-    Parameters given in the selector win over the body's.
+    A selector's values are strings parsed as their field's type (``width=2.5``,
+    ``labels=true``); a body's values must already have it (``{"width": true}`` and
+    ``{"width": "2"}`` are refused, as an ISM's would be).  A parameter given twice in the
+    selector or in the body is refused before this (:func:`~sogm_service.wire.queries.
+    selector_params`, :func:`~sogm_service.wire.queries.unpack_body`); one given in both, the
+    selector's wins.
     """
-    merged: dict[str, Any] = {}
+    merged: dict[str, Any] = unpack_body(body) if body else {}
     try:
-        if body:
-            obj = unpack(body)
-            if not isinstance(obj, dict):
-                raise QueryError("bad_parameter", "the query body must be a msgpack map")
-            merged.update(obj)
-        merged.update(params)
-        return validate(cls, merged)
-    except DecodeError as exc:
-        raise QueryError("bad_parameter", exc.message, exc.parameter) from None
+        if params:
+            from_selector = cls.model_validate_strings(dict(params))
+            merged.update({k: getattr(from_selector, k) for k in params})
+        return cls.model_validate(merged)
+    except ValidationError as exc:
+        err = validation_error_to_decode_error(exc)
+        raise QueryError("bad_parameter", err.message, err.parameter) from None
+    except (TypeError, ValueError, OverflowError) as exc:  # defensive: never escape as-is
+        raise QueryError("bad_parameter", str(exc)) from None
 
 
 def window_of(req: WindowRequest, tiled: TiledMap, n_layers: int,
-              admission: Admission | None = None) -> GridGeometry:
+              admission: Admission | None = None,
+              reply_layers: int | None = None) -> GridGeometry:
     """The request's window geometry, priced first by ``admission`` (world, cells returned and
-    read, reply bytes), so a refused window is never built.
+    read for ``n_layers`` sampled layers, reply bytes for ``reply_layers`` planes, default
+    ``n_layers``), so a refused window is never built.
 
     The server always passes its admission: it is the one place a query is priced.  In-process
     callers that build their own windows (tests, benchmarks) may pass none."""
     if admission is not None:
-        admission.check_query(req, n_layers)
+        admission.check_query(req, n_layers, reply_layers=reply_layers)
     res = req.resolution or tiled.lattice.resolution
     return window_geometry(req.x, req.y, req.yaw, req.width, req.height, res)
 
 
-def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[str]:
-    """The requested layers (default: all), each checked to exist."""
+def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[LayerClass]:
+    """The planes of the reply (default: every layer, each its own): an exact name is that
+    layer, a glob pattern the class of its matching layers (:mod:`sogm_service.core.classes`).
+    A name that is not a layer, or a pattern that matches none, is ``unknown_layer``."""
+    names = list(tiled.layers)
     if not wanted:
-        return list(tiled.layers)
-    unknown = [n for n in wanted if n not in tiled.layers]
-    if unknown:
-        raise QueryError("unknown_layer", f"unknown layer(s) {unknown}; the map has "
-                                          f"{tiled.layers}", "layers")
-    return list(wanted)
+        return [LayerClass(n, (n,)) for n in names]
+    try:
+        return cls_.resolve(wanted, names)
+    except cls_.NoMatchingLayerError as exc:
+        raise QueryError("unknown_layer", f"no layer matches {list(exc.unmatched)[:8]}; the map "
+                                          f"has {names[:32]}", "layers") from None
 
 
-def _placement(tiled: TiledMap, window: GridGeometry, layers: list[str],
+def sample_classes(tiled: TiledMap, req: WindowRequest, classes: list[LayerClass],
+                   admission: Admission | None = None
+                   ) -> tuple[GridGeometry, npt.NDArray[np.int16]]:
+    """The window, priced first (the member layers sampled, the classes replied), and one
+    plane per class: its member layers sampled once each, then fused (Bayesian, clamped)."""
+    members = cls_.member_layers(classes)
+    window = window_of(req, tiled, len(members), admission, reply_layers=len(classes))
+    stack = tiled.sample(window, members, req.interp)
+    if all(len(c.members) == 1 for c in classes) and [c.name for c in classes] == members:
+        return window, stack  # exact names, each once: the sample is the reply
+    return window, cls_.fuse_classes(stack, members, classes, limits=tiled.limits)
+
+
+def class_members(classes: list[LayerClass]) -> dict[str, list[str]] | None:
+    """A reply's ``classes`` field: each pattern's member layers (None without patterns)."""
+    pooled = {c.name: list(c.members) for c in classes if cls_.is_pattern(c.name)}
+    return pooled or None
+
+
+def _placement(tiled: TiledMap, window: GridGeometry, classes: list[LayerClass],
                stamp: float) -> dict[str, Any]:
-    """The fields every window reply shares (:class:`~sogm_service.wire.messages.WindowReply`)."""
+    """The fields every window reply shares (:class:`~sogm_service.wire.messages.WindowReply`):
+    the planes named by the classes, and each pattern's members."""
     return dict(map=tiled.name, frame=tiled.frame, stamp=stamp, resolution=window.resolution,
                 origin=PoseModel(x=window.origin.x, y=window.origin.y, yaw=window.origin.yaw),
-                width=window.width, height=window.height, layers=layers)
+                width=window.width, height=window.height, layers=[c.name for c in classes],
+                classes=class_members(classes))
 
 
 def submap(tiled: TiledMap, req: SubmapRequest, stamp: float,
            admission: Admission | None = None) -> GridReply:
-    """The ``submap`` queryable: the chosen layers resampled into the requested window."""
-    layers = resolve_layers(tiled, req.layers)
-    window = window_of(req, tiled, len(layers), admission)
-    stack = tiled.sample(window, layers, req.interp)
+    """The ``submap`` queryable: the chosen layers resampled into the requested window, a
+    pattern's class as one plane named by the pattern."""
+    classes = resolve_layers(tiled, req.layers)
+    window, stack = sample_classes(tiled, req, classes, admission)
     data = logodds.encode_fixed(stack, req.encoding)
-    return GridReply(**_placement(tiled, window, layers, stamp), encoding=req.encoding,
+    return GridReply(**_placement(tiled, window, classes, stamp), encoding=req.encoding,
                      interp=req.interp, data=WireArray.from_array(data))
 
 
@@ -112,36 +147,39 @@ def fuse_layers(stack: npt.NDArray[np.int16], method: str) -> npt.NDArray[np.int
 
 def fused(tiled: TiledMap, req: FusedRequest, stamp: float,
           admission: Admission | None = None) -> FusedReply:
-    """The ``fused`` queryable: one layer pooled from the chosen ones by Eq. 6."""
-    layers = resolve_layers(tiled, req.layers)
-    if not layers:
+    """The ``fused`` queryable: one layer pooled from the chosen ones by Eq. 6 (a pattern's
+    class counts as one layer, its members fused by the Bayesian rule first)."""
+    classes = resolve_layers(tiled, req.layers)
+    if not classes:
         raise QueryError("unknown_layer", "the map has no layers yet", "layers")
-    window = window_of(req, tiled, len(layers), admission)
-    stack = tiled.sample(window, layers, req.interp)
+    window, stack = sample_classes(tiled, req, classes, admission)
     data = logodds.encode_fixed(fuse_layers(stack, req.method), req.encoding)
-    return FusedReply(**_placement(tiled, window, layers, stamp), method=req.method,
+    return FusedReply(**_placement(tiled, window, classes, stamp), method=req.method,
                       encoding=req.encoding, interp=req.interp,
                       data=WireArray.from_array(data))
 
 
 def supercell_input(tiled: TiledMap, req: SupercellRequest,
                     admission: Admission | None = None
-                    ) -> tuple[GridGeometry, list[str], npt.NDArray[np.int16]]:
-    """The window, its layers and their log-odds: all the ``supercells`` query needs from the
+                    ) -> tuple[GridGeometry, list[LayerClass], npt.NDArray[np.int16]]:
+    """The window, its classes and their log-odds: all the ``supercells`` query needs from the
     map (the server holds its map lock only for this part, not for SEVDS)."""
-    layers = resolve_layers(tiled, req.layers)
-    if not layers:
+    classes = resolve_layers(tiled, req.layers)
+    if not classes:
         raise QueryError("unknown_layer", "the map has no layers yet", "layers")
-    window = window_of(req, tiled, len(layers), admission)
-    if min(window.width, window.height) < req.block_size:
-        raise QueryError("bad_parameter", f"the window ({window.width}x{window.height} cells) "
-                                          f"is smaller than one block ({req.block_size})",
-                         "block_size")
-    return window, layers, tiled.sample(window, layers, req.interp)
+    geometry = window_of(req, tiled, len(cls_.member_layers(classes)), admission,
+                         reply_layers=len(classes))
+    if min(geometry.width, geometry.height) < req.block_size:
+        raise QueryError("bad_parameter", f"the window ({geometry.width}x{geometry.height} "
+                                          f"cells) is smaller than one block "
+                                          f"({req.block_size})", "block_size")
+    window, stack = sample_classes(tiled, req, classes, None)  # priced just above
+    return window, classes, stack
 
 
-def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry, layers: list[str],
-               stack: npt.NDArray[np.int16], stamp: float) -> SupercellReply:
+def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry,
+               layers: list[LayerClass], stack: npt.NDArray[np.int16],
+               stamp: float) -> SupercellReply:
     """The ``supercells`` queryable: SEVDS (Eq. 7-10) on the window, as a topometric graph.
 
     Each node is the paper's triple (T_c, L_c, P_c): centroid in the map frame, adjacent

@@ -60,6 +60,7 @@ from sogm_service.wire.queries import (
     SubmapRequest,
     SupercellRequest,
 )
+    selector_params,
 
 log = logging.getLogger(__name__)
 
@@ -293,7 +294,7 @@ class MapServer:
     def params(q: zenoh.Query) -> tuple[dict[str, str], bytes | None]:
         body = q.payload.to_bytes() if q.payload is not None else None
         pairs: list[tuple[str, str]] = list(q.selector.parameters)  # type: ignore[call-overload]
-        return dict(pairs), body
+        return selector_params(pairs), body  # a parameter given twice: bad_parameter
 
     def _on_submap(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(SubmapRequest, *self.params(q))
