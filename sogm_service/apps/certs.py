@@ -25,8 +25,11 @@ Access control (default deny, by certificate common name, on the listening node)
   ``<prefix>/<map>/{submap,fused,supercells,info,stats,robots}``; may subscribe to
   ``<prefix>/<map>/events/**`` and ``<prefix>/<map>/rejections/R``; may look up and watch the
   servers' liveliness tokens ``<prefix>/<map>/@server/*``;
+- a robot ``R`` may also drop its own layers: query ``<prefix>/<map>/drop/R/**`` (the drop key
+  carries the layer pattern, so a pattern reaching past ``R/`` is another key, denied);
 - a viewer may do the same queries, event subscriptions and liveliness look-ups, and subscribe
   to ``pose/**``; it may put, delete, declare or reply nothing;
+- an operator may do what a viewer may, and drop any layers: query ``<prefix>/<map>/drop/**``;
 - server (and router) identities may do everything: they are the only ones that may declare
   queryables, publish under ``<prefix>/<map>/**``, hold ``<prefix>/<map>/@server/*`` tokens and
   read ``<prefix>/<map>/tiles/**``;
@@ -83,6 +86,7 @@ def access_control(pki: Pki) -> dict[str, Any]:
     reads = [f"{base}/{q}" for q in READ_QUERIES] + \
         [f"{base}/member/*/{q}" for q in QUERYABLES]
     events = f"{base}/events/**"
+    drops = f"{base}/drop"
     servers_token = f"{base}/@server/*"
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
@@ -119,6 +123,8 @@ def access_control(pki: Pki) -> dict[str, Any]:
     # only when it knows a matching subscriber (without this, MapClient.publish_ism's puts
     # are dropped at the robot). It tells the robot that someone listens, nothing more.
     rule("ingest-decl", "egress", ["declare_subscriber"], ["ism/**", "pose/**"])
+    if pki.robots or pki.operators:  # those who may drop learn of the servers' drop queryable
+        rule("drop-decl", "egress", ["declare_queryable"], [f"{drops}/**"])
 
     for robot in pki.robots:
         own = [rule(f"robot-{robot}-put", "ingress", ["put"], [f"ism/{robot}/**",
@@ -126,18 +132,30 @@ def access_control(pki: Pki) -> dict[str, Any]:
                rule(f"robot-{robot}-rej-sub", "ingress", ["declare_subscriber"],
                     [f"{base}/rejections/{robot}"]),
                rule(f"robot-{robot}-rej-put", "egress", ["put"],
-                    [f"{base}/rejections/{robot}"])]
+                    [f"{base}/rejections/{robot}"]),
+               rule(f"robot-{robot}-drop", "ingress", ["query"], [f"{drops}/{robot}/**"]),
+               rule(f"robot-{robot}-drop-reply", "egress", ["reply"], [f"{drops}/{robot}/**"])]
         subjects.append({"id": f"robot-{robot}", "cert_common_names": [robot]})
-        policies.append({"id": f"robot-{robot}", "rules": [*shared, "ingest-decl", *own],
+        policies.append({"id": f"robot-{robot}", "rules": [*shared, "ingest-decl", "drop-decl",
+                                                           *own],
                          "subjects": [f"robot-{robot}"]})
 
-    if pki.viewers:
+    if pki.viewers or pki.operators:
         rule("viewer-pose-sub", "ingress", ["declare_subscriber"], ["pose/**"])
         rule("viewer-pose-put", "egress", ["put"], ["pose/**"])
+    if pki.viewers:
         subjects.append({"id": "viewers", "cert_common_names": list(pki.viewers)})
         policies.append({"id": "viewers",
                          "rules": [*shared, "viewer-pose-sub", "viewer-pose-put"],
                          "subjects": ["viewers"]})
+    if pki.operators:
+        rule("operator-drop", "ingress", ["query"], [f"{drops}/**"])
+        rule("operator-drop-reply", "egress", ["reply"], [f"{drops}/**"])
+        subjects.append({"id": "operators", "cert_common_names": list(pki.operators)})
+        policies.append({"id": "operators",
+                         "rules": [*shared, "viewer-pose-sub", "viewer-pose-put", "drop-decl",
+                                   "operator-drop", "operator-drop-reply"],
+                         "subjects": ["operators"]})
 
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
@@ -211,7 +229,8 @@ def init_pki(directory: Path | str, *, server_names: Sequence[str],
              robot_names: Sequence[str] = (), viewer_names: Sequence[str] = (),
              router_name: str | None = None, endpoint: str = DEFAULT_ENDPOINT,
              sans: Sequence[str] = (), map_name: str = "default", prefix: str = "sogm",
-             days: int = DEFAULT_DAYS, force: bool = False) -> Pki:
+             days: int = DEFAULT_DAYS, force: bool = False,
+             operator_names: Sequence[str] = ()) -> Pki:
     """Create a CA, one certificate/key/Zenoh config per identity and the manifest.
 
     Refuses (``PkiError``) an existing PKI unless ``force``, a bad or duplicate name, no
@@ -221,7 +240,7 @@ def init_pki(directory: Path | str, *, server_names: Sequence[str],
     if not server_names:
         raise PkiError("no_server", "at least one server identity is needed")
     names = [*server_names, *([router_name] if router_name else []), *robot_names,
-             *viewer_names]
+             *viewer_names, *operator_names]
     for n in names:
         _check_name(n)
     dupes = sorted({n for n in names if names.count(n) > 1})
@@ -238,7 +257,7 @@ def init_pki(directory: Path | str, *, server_names: Sequence[str],
                                  "to start over)")
     directory.mkdir(parents=True, exist_ok=True)
     pki = Pki(directory, list(server_names), list(robot_names), list(viewer_names), router_name,
-              endpoint, list(sans), map_name, prefix, days)
+              endpoint, list(sans), map_name, prefix, days, list(operator_names))
     ca = make_ca()
     write_key(directory / "ca.key", ca.key)
     write_cert(pki.ca_cert, ca.cert)
@@ -259,9 +278,9 @@ def bench_pki() -> Iterator[tuple[Path, Path]]:
 
 
 def add_identity(directory: Path | str, name: str, role: str = "robot") -> Pki:
-    """Issue a new robot, viewer or server with the existing CA; rewrite every config so the
-    access control (on the router, or the first server) knows it.  Nodes that carry the
-    access control must be restarted to load it."""
+    """Issue a new robot, viewer, operator or server with the existing CA; rewrite every
+    config so the access control (on the router, or the first server) knows it.  Nodes that
+    carry the access control must be restarted to load it."""
     pki = Pki.load(Path(directory))
     _check_name(name)
     if name in pki.names():
@@ -272,8 +291,10 @@ def add_identity(directory: Path | str, name: str, role: str = "robot") -> Pki:
         pki.viewers.append(name)
     elif role == "server":
         pki.servers.append(name)
+    elif role == "operator":
+        pki.operators.append(name)
     else:
-        raise PkiError("bad_role", f"{role!r}: one of robot, viewer, server")
+        raise PkiError("bad_role", f"{role!r}: one of robot, viewer, operator, server")
     _issue(pki, load_ca(pki.directory), name)
     write_configs(pki)
     return pki
@@ -303,7 +324,7 @@ def remove_identity(directory: Path | str, name: str) -> Pki:
         raise PkiError("unknown_name", f"{name!r} is not an identity of {pki.directory}")
     if name == pki.router or pki.servers == [name]:
         raise PkiError("needed", f"{name!r} is the router or the only server")
-    for lst in (pki.servers, pki.robots, pki.viewers):
+    for lst in (pki.servers, pki.robots, pki.viewers, pki.operators):
         if name in lst:
             lst.remove(name)
     for path in (pki.key(name), pki.cert(name), pki.config(name)):
@@ -328,6 +349,9 @@ def add_parser(subparsers: Any) -> None:
                       help="a robot identity (repeatable; default: none)")
     init.add_argument("--viewer", action="append", default=[], metavar="NAME",
                       help="a read-only viewer identity (repeatable; default: none)")
+    init.add_argument("--operator", action="append", default=[], metavar="NAME",
+                      help="a viewer that may also drop any layers (`layers drop`; "
+                           "repeatable; default: none)")
     init.add_argument("--router", default=None, metavar="NAME",
                       help="a router in the middle: it listens and enforces access control "
                            "(default: none, the first server listens)")
@@ -347,6 +371,7 @@ def add_parser(subparsers: Any) -> None:
     who.add_argument("--robot", metavar="NAME", help="a robot identity")
     who.add_argument("--viewer", metavar="NAME", help="a read-only viewer identity")
     who.add_argument("--server", metavar="NAME", help="one more map server identity")
+    who.add_argument("--operator", metavar="NAME", help="a viewer that may drop layers")
     renew = command(sub, "renew", "a new key and certificate for an identity")
     renew.add_argument("dir", type=Path, help="the PKI directory")
     renew.add_argument("name", help="the identity")
@@ -387,10 +412,11 @@ def run(args: argparse.Namespace) -> int:
             pki = init_pki(args.dir, server_names=args.server, robot_names=args.robot,
                            viewer_names=args.viewer, router_name=args.router,
                            endpoint=args.endpoint, sans=args.san, map_name=args.map,
-                           prefix=args.prefix, days=args.days, force=args.force)
+                           prefix=args.prefix, days=args.days, force=args.force,
+                           operator_names=args.operator)
         elif args.action == "add":
-            role, name = next((r, getattr(args, r)) for r in ("robot", "viewer", "server")
-                              if getattr(args, r))
+            role, name = next((r, getattr(args, r)) for r in ("robot", "viewer", "server",
+                                                              "operator") if getattr(args, r))
             pki = add_identity(args.dir, name, role)
             print(f"issued {role} {name!r}; restart {pki.acl_holder!r} to load the new "
                   "access-control rules", file=sys.stderr)

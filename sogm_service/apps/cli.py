@@ -41,6 +41,7 @@ MODULES: dict[str, str] = {
     "publish-ism": "sogm_service.apps.publish",
     "schemas": "sogm_service.apps.publish",
     "tiles": "sogm_service.apps.tiletool",
+    "layers": "sogm_service.apps.layers",
     "replay": "sogm_service.apps.replay",
     "demo": "sogm_service.apps.demo",
     "view": "sogm_service.apps.viewer",

@@ -20,7 +20,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-ROLES = ("server", "router", "robot", "viewer")
+ROLES = ("server", "router", "robot", "viewer", "operator")
 MANIFEST = "pki.json"
 DEFAULT_ENDPOINT = "tls/localhost:7447"
 DEFAULT_DAYS = 365
@@ -187,10 +187,11 @@ class Pki:
     map_name: str = "default"
     prefix: str = "sogm"
     days: int = DEFAULT_DAYS
+    operators: list[str] = field(default_factory=list)  # viewers that may also drop layers
 
     def names(self) -> list[str]:
         return [*self.servers, *([self.router] if self.router else []),
-                *self.robots, *self.viewers]
+                *self.robots, *self.viewers, *self.operators]
 
     def role(self, name: str) -> str:
         if name in self.servers:
@@ -201,6 +202,8 @@ class Pki:
             return "robot"
         if name in self.viewers:
             return "viewer"
+        if name in self.operators:
+            return "operator"
         raise KeyError(name)
 
     def cert(self, name: str) -> Path:

@@ -27,6 +27,7 @@ SCHEMA_MODELS: tuple[type[BaseModel], ...] = (
     m.IsmMessage, m.PoseMessage, q.SubmapRequest, q.FusedRequest, q.SupercellRequest,
     q.GridReply, q.FusedReply, q.SupercellReply, m.TileEvent, m.RobotTilesReply, m.MatchReport,
     q.InfoReply, q.StatsReply, m.ErrorReply, m.RejectionReport, m.IsmAck, q.TilesChangedRequest,
+    m.DropLayersReply,
 )
 """Every wire model with a JSON Schema in ``schemas/`` (``sogm-service schemas``)."""
 

@@ -78,6 +78,8 @@ QUERY_CODES: Final[dict[str, str]] = {
     "no_owner": "no live owner of a tile the window needs answered in time (cluster)",
     "warming_up": "the server is still compiling its supercell kernels (only after a fresh "
                   "install or upgrade); the client retries within its supercells timeout",
+    "cluster_unsupported": "a cluster member does not drop layers (each member holds its share "
+                           "and replicas: a drop on one would come back from another)",
 }
 """Why a query cannot be answered (:class:`QueryError`)."""
 

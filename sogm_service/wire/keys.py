@@ -3,14 +3,16 @@ docs/architecture.md#5-the-wire).
 
 Under ``<prefix>/<map>/`` (default ``sogm/default/``) a server declares its queryables
 (:data:`QUERYABLES`), ``tiles/<i>/<j>``, ``tiles/changed``, ``robots``, the tile-event publisher
-``events/tile``, scan-matching reports ``matching/<ISM key>`` and its liveliness token
-``@server/<id>``.  ISMs and poses arrive on their own key expressions (``ism/**``, ``pose/**`` by
-default): the layer is the remainder of an ISM key after the expression's literal prefix, the
-robot the last chunk of a pose key.
+``events/tile``, scan-matching reports ``matching/<ISM key>``, the layer-drop queryable
+``drop/**`` (:func:`drop_chunks`) and its liveliness token ``@server/<id>``.  ISMs and poses
+arrive on their own key expressions (``ism/**``, ``pose/**`` by default): the layer is the
+remainder of an ISM key after the expression's literal prefix, the robot the last chunk of a
+pose key.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Final
 
@@ -80,6 +82,16 @@ class MapKeys:
         """Where the server reports each ISM it rejects, per robot (``*`` for all)."""
         return self.key("rejections", robot)
 
+    def drop(self, pattern: str) -> str:
+        """``<prefix>/<map>/drop/<pattern>``: the get that removes the layers matching a glob
+        ``pattern`` (:func:`drop_chunks`); ``ValueError`` for a pattern no key can carry."""
+        return self.key("drop", drop_chunks(pattern))
+
+    @property
+    def all_drops(self) -> str:
+        """The layer-drop queryable every server declares."""
+        return self.key("drop", "**")
+
 
 def tile_of_key(key: str) -> tuple[int, int]:
     """``(i, j)`` of a ``.../tiles/<i>/<j>`` key; ``ValueError`` for anything else."""
@@ -129,3 +141,38 @@ def pose_key(prefix: str, robot: str) -> str:
 def is_key_chunk(chunk: str) -> bool:
     """True when ``chunk`` can be one literal chunk of a key (no wildcard, no separator)."""
     return bool(chunk) and not any(c in chunk for c in "/*$?#") and len(chunk) <= 128
+
+
+DROP_PATTERN: Final = re.compile(r"^[A-Za-z0-9_\-./*\[\]!]{1,128}$")
+"""A layer pattern a drop key can carry: layer-name characters, ``*`` and ``[...]``/``[!...]``
+(``?`` is the selector's separator, so it cannot travel in a key)."""
+
+
+def drop_chunks(pattern: str) -> str:
+    """The key chunks carrying a glob ``pattern`` over layer names (``*`` crosses ``/``):
+    each ``/``-chunk of the pattern is one chunk of the key, a chunk that is only ``*`` stays
+    ``*`` and a ``*`` inside a chunk becomes Zenoh's ``$*`` (``robot3/*`` -> ``robot3/*``,
+    ``robot*/laser`` -> ``robot$*/laser``).  So a pattern's literal first chunk (the robot
+    whose layers it names) is the key's, and access control that allows a robot
+    ``.../drop/<robot>/**`` allows it no pattern reaching past its own name.  ``ValueError``
+    for an empty chunk or a character no key can carry."""
+    collapsed = re.sub(r"\*+", "*", pattern)
+    chunks = collapsed.split("/")
+    if not DROP_PATTERN.match(collapsed) or not all(chunks):
+        raise ValueError(f"{pattern[:140]!r} is not a layer pattern a key can carry: 1-128 "
+                         "characters of [A-Za-z0-9_-./*[]!], no empty '/' chunk")
+    return "/".join(c if c == "*" else c.replace("*", "$*") for c in chunks)
+
+
+def drop_pattern(key: str, keys: MapKeys) -> str:
+    """The glob pattern a drop key carries (the inverse of :func:`drop_chunks`; a ``**`` chunk
+    reads as ``*``); ``ValueError`` when ``key`` carries none."""
+    head = keys.key("drop") + "/"
+    if not key.startswith(head):
+        raise ValueError(f"{key[:200]!r} is not under {head!r}")
+    chunks = ["*" if c == "**" else c.replace("$*", "*") for c in key[len(head):].split("/")]
+    pattern = "/".join(chunks)
+    if "$" in pattern or not DROP_PATTERN.match(pattern) or not all(chunks):
+        raise ValueError(f"{key[len(head):][:140]!r} carries no layer pattern: 1-128 characters "
+                         "of [A-Za-z0-9_-./*[]!], no empty '/' chunk")
+    return pattern

@@ -307,3 +307,19 @@ class IsmAck(WireModel):
     code: str | None = None
     message: str = ""
     stamp: float = 0.0
+
+
+class DropLayersReply(WireModel):
+    """What a server removed for a get on ``<prefix>/<map>/drop/<pattern>``: the layers
+    matching ``pattern`` (gone from the map and its store), the tiles that lost a plane
+    (rewritten) and those left without any layer (removed), and whether the store already
+    holds the result (``stored``; a server without a store has nothing to rewrite)."""
+
+    schema_name: ClassVar[str] = "drop_layers_reply"
+    map: str
+    server_id: str
+    pattern: str
+    layers: list[str]
+    tiles_rewritten: int
+    tiles_removed: int
+    stored: bool

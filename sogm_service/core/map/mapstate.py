@@ -1,7 +1,8 @@
 """What every job of the tiled map shares (:class:`MapState`): its layers, its tiles and their
 residency (created, loaded back through the ``loader`` hook, inserted, evicted, discarded), the
-running count of resident bytes, consistent snapshots, and the map's clock with the half-lives of
-decaying layers (:mod:`sogm_service.core.map.forget`).
+running count of resident bytes, consistent snapshots, the map's clock with the half-lives of
+decaying layers (:mod:`sogm_service.core.map.forget`), and the removal of layers
+(:meth:`MapState.drop_layers`).
 
 The locks and the rules they follow are described in :mod:`sogm_service.core.map.tiles`; the
 fuse (:mod:`sogm_service.core.map.fusing`) and the reads (:mod:`sogm_service.core.map.reading`)
@@ -39,6 +40,10 @@ class MapState:
         self.limits = logodds.clamp_limits(eps0)
         self.layers: list[str] = []
         self._layer_index: dict[str, int] = {}
+        # Layer index -> name, None once dropped: an index is never reused, so a fuse or read
+        # that holds one while its layer is dropped never reaches another layer.
+        self._names: list[str | None] = []
+        self._dropping: frozenset[str] = frozenset()  # names a loaded tile leaves out
         self.tiles: dict[TileIndex, Tile] = {}
         self.stored: set[TileIndex] = set()
         self.loader = loader
@@ -81,7 +86,8 @@ class MapState:
             with self._struct:
                 idx = self._layer_index.get(layer)
                 if idx is None:
-                    idx = len(self.layers)
+                    idx = len(self._names)
+                    self._names.append(layer)
                     self.layers.append(layer)
                     self._layer_index[layer] = idx
         return idx
@@ -89,6 +95,58 @@ class MapState:
     def adopt_layers(self, names: Iterable[str]) -> list[int]:
         """Map a stored tile's layer names onto this map's layer indices (adding new ones)."""
         return [self.layer_id(n, create=True) for n in names]
+
+    def drop_layers(self, names: Iterable[str]) -> tuple[list[str], list[TileIndex],
+                                                            list[TileIndex]]:
+        """Remove layers from the map: ``(layers removed, resident tiles that lost a plane,
+        tiles left without any)``.  The tiles that lost a plane get a new version (dirty: the
+        caller stores them); a tile left without planes leaves the map, resident and stored
+        (the caller removes its file).  Names the map lacks are ignored.
+
+        The indices of removed layers are retired, never reused: a fuse that got one before
+        the drop adds into a plane the tile no longer keeps (:meth:`_plane`), so an ISM being
+        fused meanwhile is removed with its layer, and a later ISM of the same name starts a
+        new layer.  Until :meth:`end_drop`, a tile loaded back (from the store or the
+        writer's queue) leaves these layers out and comes back dirty, so the caller rewrites
+        the stored tiles one by one with :meth:`get_tile` and :meth:`evict`."""
+        with self._struct:
+            gone = [n for n in dict.fromkeys(names) if n in self._layer_index]
+            lids = {self._layer_index.pop(n) for n in gone}
+            for n in gone:
+                self.layers.remove(n)  # in place: views of the map share the list
+            for lid in lids:
+                self._names[lid] = None
+                self._half_lives.pop(lid, None)
+            self._dropping = self._dropping | frozenset(gone)
+            rewritten, emptied = [], []
+            for index, tile in list(self.tiles.items()):
+                with tile.lock:
+                    if not self._strip(tile, lids):
+                        continue
+                    rewritten.append(index)
+                    if not tile.planes and not tile.pins:
+                        tile.evicted = True
+                        del self.tiles[index]
+                        self.stored.discard(index)
+                        emptied.append(index)
+        return gone, rewritten, emptied
+
+    def end_drop(self) -> None:
+        """Every stored tile is rewritten: loaded tiles keep all their layers again."""
+        with self._struct:
+            self._dropping = frozenset()
+
+    def _strip(self, tile: Tile, lids: set[int]) -> bool:
+        """Remove the planes of layer indices ``lids`` from ``tile`` (its lock held)."""
+        found = [lid for lid in tile.planes if lid in lids]
+        for lid in found:
+            plane = tile.planes.pop(lid)
+            tile.decay.pop(lid, None)
+            if self.tiles.get(tile.index) is tile:
+                self._account(-plane.nbytes)
+        if found:
+            tile.version = self.tick()
+        return bool(found)
 
     # -- tiles ----------------------------------------------------------------------------
     @property
@@ -98,6 +156,11 @@ class MapState:
     def known_tiles(self) -> set[TileIndex]:
         with self._struct:
             return set(self.tiles) | self.stored
+
+    def not_resident(self) -> list[TileIndex]:
+        """The stored tiles that are not resident now, in index order."""
+        with self._struct:
+            return sorted(self.stored - set(self.tiles))
 
     def resident(self) -> list[Tile]:
         """The resident tiles now (a copy of the list: safe to iterate while others write)."""
@@ -135,9 +198,13 @@ class MapState:
             return None
         names, stack, stamp = loaded[0], loaded[1], loaded[2]
         version = self._keep_version(loaded[5] if len(loaded) > 5 else 0)
+        keep = [k for k, n in enumerate(names) if n not in self._dropping]
+        if len(keep) < len(names):  # a drop in progress: rewritten without them (dirty)
+            names, stack, version = [names[k] for k in keep], stack[keep], self.tick()
         tile = Tile(index, self._planes_for(names, stack), stamp=stamp, version=version,
-                    saved_version=version)
-        self._adopt_decay(tile, loaded[3] if len(loaded) > 3 else None)
+                    saved_version=version if len(keep) == len(loaded[0]) else -1)
+        decay = (loaded[3] if len(loaded) > 3 else None) or {}
+        self._adopt_decay(tile, {n: t for n, t in decay.items() if n not in self._dropping})
         if len(loaded) > 4:
             tile.applied = dict(loaded[4])
         self.tiles[index] = tile
@@ -212,7 +279,13 @@ class MapState:
         tile has no plane: a new array (the caller holds the tile's lock, or has the map to
         itself)."""
         names = list(self.layers)
-        return names, tile.stack(len(names), self.tile_size)
+        t = self.tile_size
+        out = np.zeros((len(names), t, t), dtype=np.int16)
+        for k, name in enumerate(names):
+            plane = tile.planes.get(self._layer_index.get(name, -1))
+            if plane is not None:
+                out[k] = plane
+        return names, out
 
     def snapshot(self, index: TileIndex) -> TileSnapshot | None:
         """A consistent copy of a resident tile (None when it is not resident)."""
@@ -226,15 +299,16 @@ class MapState:
         """Sparse: the layers this tile has a plane of, in the map's order (a tile of one
         layer in a map of a thousand copies one plane; the store and replicas carry layer
         names per tile)."""
-        lids = sorted(tile.planes)
+        names = self._names
+        lids = sorted(lid for lid in tile.planes if names[lid] is not None)
         t = self.tile_size
         data = np.empty((len(lids), t, t), dtype=np.int16)
         for k, lid in enumerate(lids):
             data[k] = tile.planes[lid]
-        return TileSnapshot(tile.index, [self.layers[lid] for lid in lids], data, tile.stamp,
+        return TileSnapshot(tile.index, [str(names[lid]) for lid in lids], data, tile.stamp,
                             tile.version, tile.dirty,
-                            {self.layers[k]: t_d for k, t_d in sorted(tile.decay.items())
-                             if k in tile.planes},
+                            {str(names[k]): t_d for k, t_d in sorted(tile.decay.items())
+                             if k in tile.planes and names[k] is not None},
                             dict(tile.applied))
 
     def _plane(self, tile: Tile, lid: int,
@@ -245,6 +319,8 @@ class MapState:
         plane = tile.planes.get(lid)
         if plane is None:
             plane = fresh if fresh is not None else self._new_plane()
+            if self._names[lid] is None:  # dropped since the fuse began: added, not kept
+                return plane
             tile.planes[lid] = plane
             if self.tiles.get(tile.index) is tile:  # not a tile fetched or already gone
                 self._account(plane.nbytes)
@@ -295,7 +371,8 @@ class MapState:
         try:
             return self._half_lives[lid]
         except KeyError:
-            h = self._forget.half_life(self.layers[lid]) if self._forget else None
+            name = self._names[lid]
+            h = self._forget.half_life(name) if self._forget and name is not None else None
             self._half_lives[lid] = h
             return h
 

@@ -106,7 +106,8 @@ def test_cli_init_add_renew_and_refusals(tmp_path: Path, capsys: pytest.CaptureF
     acl = config_dict(d / "srv.json5")["access_control"]
     r2_rules = {k for r in acl["rules"] if r["id"].startswith("robot-r2-")
                 for k in r["key_exprs"]}
-    assert r2_rules == {"ism/r2/**", "pose/r2", "sogm/plant/rejections/r2"}
+    assert r2_rules == {"ism/r2/**", "pose/r2", "sogm/plant/rejections/r2",
+                        "sogm/plant/drop/r2/**"}
     assert config_dict(d / "r2.json5")["connect"]["endpoints"] == ["tls/127.0.0.1:7447"]
     assert certs.main(["add", str(d), "--robot", "r2"]) == 2  # duplicate
     assert certs.main(["renew", str(d), "r1", "--days", "30"]) == 0

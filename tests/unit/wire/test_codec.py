@@ -20,6 +20,7 @@ from sogm_service.wire import codec, limits
 from sogm_service.wire.codec import SCHEMA_MODELS, DecodeError
 from sogm_service.wire.errors import DECODE_CODES
 from sogm_service.wire.messages import (
+    DropLayersReply,
     ErrorReply,
     GeodeticFix,
     IsmAck,
@@ -121,6 +122,9 @@ def valid_instances() -> dict[type[BaseModel], BaseModel]:
                                                          held={"0,-1": 17, "3,2": 0})
     instances[IsmAck] = IsmAck(id="a1b2c3-7", status="rejected", key="ism/r1/laser/obstacle",
                                code="wrong_frame", message="ISM frame 'odom'", stamp=6.0)
+    instances[DropLayersReply] = DropLayersReply(
+        map="default", server_id="a1b2", pattern="robot2/*", layers=["robot2/laser/obstacle"],
+        tiles_rewritten=3, tiles_removed=1, stored=True)
     return instances
 
 
