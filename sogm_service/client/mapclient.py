@@ -46,9 +46,10 @@ from sogm_service.wire.errors import (
     ServiceError,
     SessionOpenError,
 )
-from sogm_service.wire.keys import MapKeys, last_chunk, pose_key, tile_of_key
+from sogm_service.wire.keys import MapKeys, drop_chunks, last_chunk, pose_key, tile_of_key
 from sogm_service.wire.limits import MAX_REPLY_BYTES, SUPERCELLS_TIMEOUT_S
 from sogm_service.wire.messages import (
+    DropLayersReply,
     GeodeticFix,
     IsmAck,
     IsmMessage,
@@ -230,6 +231,11 @@ class MapClient:
                         f"supercells: the server was still compiling its kernels after "
                         f"{timeout or self.supercells_timeout:g} s") from None
                 time.sleep(0.2)
+
+    def drop_layers(self, pattern: str) -> DropLayersReply:
+        """Remove the layers matching glob ``pattern`` (``robot3/*``) from the map and store:
+        what went.  Denied by access control: no reply, a timeout (docs/using.md)."""
+        return self._get(DropLayersReply, "drop/" + drop_chunks(pattern))
 
     def info(self) -> InfoReply:
         return self._get(InfoReply, "info")

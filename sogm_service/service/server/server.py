@@ -42,6 +42,7 @@ from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server import queries, tilesync
 from sogm_service.service.server.acks import IsmOutcomes, ism_id_of
 from sogm_service.service.server.checkpoints import Checkpointer
+from sogm_service.service.server.droplayers import LayerDrop
 from sogm_service.service.server.fleet import FleetTracker
 from sogm_service.service.server.fusers import FuseWorkers
 from sogm_service.service.server.ingest import IngestQueue, IngestWorker
@@ -183,6 +184,10 @@ class MapServer:
             self.keys.robots, self._guarded("robots", lambda q: self.fleet.robots_reply())))
         self._declared.append(s.declare_queryable(self.keys.ack,
                                                   self._guarded("ack", self._on_ack)))
+        drop = LayerDrop(self.keys, self.map, self.tiles, self.stats, lambda: self.server_id,
+                         clustered=self.cluster is not None)
+        self._declared.append(s.declare_queryable(self.keys.all_drops,
+                                                  self._guarded("drop", drop.on_query)))
         if self.cluster is not None:  # pulls the tiles it will own before declaring itself
             self.cluster.join(s, self.server_id)
 
