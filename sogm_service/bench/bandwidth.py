@@ -20,7 +20,9 @@ The network total is the relay's two directions plus the ROS 2 payloads.  Bytes 
 second are per simulated second: a real robot at the demo's sensor rate.
 
 The ratio is now / raw (the raw run differs only in compression: its ROS 2 maps are the same
-rectangles of what changed).  The target of the full run (60 s simulated): at most 50 MB on the
+rectangles of what changed).  The ROS 2 share compares the ROS 2 payloads with what sending
+every changed grid whole at each publication would have cost (the server's
+``whole_equivalent_bytes`` counter).  The target of the full run (60 s simulated): at most 50 MB on the
 network, every ISM fused in both runs and the same per-class IoU; ``--quick`` (10 s) only
 reports, since the whole grids a ROS 2 tool gets first weigh more in a short run.
 """
@@ -249,12 +251,23 @@ def run_mode(directory: Path, compression: str, duration: float, ros2: bool) -> 
                                        f"{(d / 'demo.log').read_text()[-1500:]}")
                 time.sleep(0.5)  # the last ROS 2 publication reaches the counter
                 samples, payload = tally.snapshot()
+                ros2_counters = _ros2_counters(d, endpoint) if ros2 else {}
         finally:
             relay.close()
         up, down = relay.counts()
     summary = json.loads((d / "out" / "summary.json").read_text())
     return {"samples": samples, "payload": payload, "up": up, "down": down, "wall_s": wall,
-            "summary": summary}
+            "summary": summary, "ros2": ros2_counters}
+
+
+def _ros2_counters(directory: Path, endpoint: str) -> dict[str, int]:
+    """The server's ROS 2 counters: what it published, and ``whole_equivalent_bytes`` (what
+    republishing each changed grid whole would have sent)."""
+    with MapClient.connect(zenoh_config=zenoh_json5(directory / "stats.json5", "client",
+                                                    connect=endpoint),
+                           timeout=10.0) as client:
+        extra = client.stats().extra.get("ros2", {})
+    return {k: int(v) for k, v in extra.get("counters", {}).items()}
 
 
 def classes(run: dict[str, Any]) -> dict[str, int]:
@@ -348,6 +361,13 @@ def _row(runs: dict[str, dict[str, Any]], duration: float, ros2: bool,
         if raw.get(cls):
             details[f"ratio_{cls}"] = now.get(cls, 0) / raw[cls]
     ratio = now["total"] / raw["total"]
+    ros2_bytes = sum(n for c, n in now.items() if c.startswith("ros2_"))
+    whole = runs["zstd"]["ros2"].get("whole_equivalent_bytes", 0)
+    ros2_share = ros2_bytes / whole if whole else None
+    if ros2_share is not None:
+        details.update({"now_ros2_bytes": float(ros2_bytes),
+                        "now_ros2_whole_equivalent_bytes": float(whole),
+                        "ros2_share_of_whole": ros2_share})
     summaries = [r["summary"] for r in runs.values()]
     fused = all(s["isms_published"] == s["isms_fused"] for s in summaries)
     same_iou = summaries[0]["iou"] == summaries[1]["iou"]
@@ -359,6 +379,8 @@ def _row(runs: dict[str, dict[str, Any]], duration: float, ros2: bool,
             f"{'unchanged' if same_iou else 'CHANGED'}; largest now: "
             + ", ".join(f"{c} {n / per / 1e3:.1f} kB/robot/s" for n, c in top)
             + ("" if ros2 else "; serve without --ros2 (the ros2 extra is not installed)")
+            + (f"; ROS 2 {ros2_bytes / 1e6:.1f} MB, {ros2_share:.1%} of republishing each "
+               f"changed grid whole ({whole / 1e6:.0f} MB)" if ros2_share is not None else "")
             + (f"; late joiner's mirror of {joiner['mirror_side_m']:g} m x "
                f"{joiner['mirror_side_m']:g} m: {joiner['mirror_tiles']:g} tiles in "
                f"{joiner['mirror_s']:.2f} s, {float(joiner['mirror_bytes']) / 1e6:.1f} MB"

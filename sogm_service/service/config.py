@@ -257,8 +257,9 @@ class Ros2Settings(_Section):
         "Between whole OccupancyGrids only the changed rectangles go out (on "
         "<topic>_updates); after updates a whole grid is sent again at most this long after "
         "the last one (s; 0: only when the extent grows).", "s", ge=0)] = 30.0
-    region: Annotated[Literal["robots", "known"], _doc(
-        "The published region: around the robots, or the whole known map.")] = "robots"
+    region: Annotated[Literal["recent", "robots", "known"], _doc(
+        "The published region: what is known around the ISMs fused lately (with or without "
+        "robot poses), around the robots' poses, or the whole known map.")] = "recent"
     region_radius_m: Annotated[float, _doc(
         "With region robots: the radius published around each robot (m).", "m", gt=0)] = 20.0
     max_publish_cells: Annotated[int, _doc(

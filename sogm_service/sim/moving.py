@@ -3,10 +3,12 @@ back and forth, and a detector on every robot that reports it into a ``person`` 
 
 The person is not part of the world's grids (the laser and the camera do not see it), so the
 other layers are exactly what they are without it.  The detector's ISM is cast on the map's
-lattice (:mod:`sogm_service.adapters.laser_lattice` explains why): ``p_free`` over a disc of
-``range_m`` around the robot ("no person here"), ``p_occ`` over a disc of ``radius`` at the
+lattice (:mod:`sogm_service.adapters.laser_lattice` explains why): ``p_free`` ("no person
+here") over what the robot sees within ``range_m``, ``p_occ`` over a disc of ``radius`` at the
 person when it is within range and in line of sight (nothing taller than ``eye_height`` in
-between).  The map server gives the layer a half-life (``[map] forget``), so the person's old
+between).  What it sees is the line of sight at ``eye_height``, cast in ``rays`` directions:
+a detector says nothing of the far side of a wall or a shelf (and nothing outside the
+building), so the layer's known area is the one the robots could look at.  The map server gives the layer a half-life (``[map] forget``), so the person's old
 positions fade toward unknown while the latest stays.
 """
 
@@ -19,7 +21,7 @@ import numpy as np
 
 from sogm_service.core.geometry import GridGeometry, Pose2D
 from sogm_service.sim.robots import SimStep
-from sogm_service.sim.sensors import SensorIsm, lookup
+from sogm_service.sim.sensors import SensorIsm, first_hit, lookup
 from sogm_service.sim.worlds import World
 
 
@@ -64,6 +66,7 @@ class PersonDetector:
     resolution: float = 0.05
     p_free: float = 0.45
     p_occ: float = 0.85
+    rays: int = 360
 
     def observe(self, world: World, step: SimStep) -> list[SensorIsm]:
         """The step's ISM, measured at the true pose and placed at the reported one."""
@@ -79,13 +82,25 @@ class PersonDetector:
         n = math.ceil(2 * self.range_m / res) + 1
         geom = GridGeometry(res, n, n, Pose2D(c0 * res, r0 * res, 0.0))
         centres = geom.cell_centers()
-        d_robot = np.hypot(centres[..., 0] - step.pose.x, centres[..., 1] - step.pose.y)
+        dx, dy = centres[..., 0] - step.pose.x, centres[..., 1] - step.pose.y
         p = np.full(geom.shape, 0.5, dtype=np.float32)
-        p[d_robot <= self.range_m] = self.p_free
+        p[self._in_sight(world, step, np.hypot(dx, dy), np.arctan2(dy, dx))] = self.p_free
         if seen:
             d_person = np.hypot(centres[..., 0] - at[0], centres[..., 1] - at[1])
             p[d_person <= self.radius] = self.p_occ
         return [SensorIsm(self.layer, geom, p, self.name)]
+
+    def _in_sight(self, world: World, step: SimStep, dist: np.ndarray,
+                  bearing: np.ndarray) -> np.ndarray:
+        """Cells (by distance and map-frame bearing from the reported pose) within range and
+        before the first obstacle at eye height in their direction (cast at the true pose)."""
+        n = self.rays
+        angles = np.arange(n) * (2 * math.pi / n)  # robot frame
+        reach = np.minimum(first_hit(world, step.true_pose, angles, self.range_m,
+                                     self.eye_height, 0.0), self.range_m)
+        rel = (bearing - step.pose.yaw) % (2 * math.pi)
+        ray = np.rint(rel / (2 * math.pi / n)).astype(np.int64) % n
+        return np.asarray(dist <= reach[ray])
 
     def _visible(self, world: World, pose: Pose2D, xy: tuple[float, float]) -> bool:
         d = math.hypot(xy[0] - pose.x, xy[1] - pose.y)

@@ -29,7 +29,8 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from rosbags.typesys.base import Nodetype  # noqa: E402
 
 from sogm_service.adapters.ros2.convert import window_to_grid  # noqa: E402
-from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot, publish_region  # noqa: E402
+from sogm_service.adapters.ros2.extent import publish_region  # noqa: E402
+from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot  # noqa: E402
 from sogm_service.client import MapClient  # noqa: E402
 from sogm_service.client.session import free_tcp_endpoint, loopback_settings, open_session  # noqa: E402
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice  # noqa: E402

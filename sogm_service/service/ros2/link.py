@@ -18,12 +18,16 @@ from typing import Any
 
 import zenoh
 
-from sogm_service.adapters.ros2.views import (
-    MapSnapshot,
-    map_snapshot,
+from sogm_service.adapters.ros2.extent import (
+    GROWTH_STEP_CELLS,
+    HEADROOM,
+    RegionTracker,
+    geometry_of,
     publish_region,
+    shrink_about_centre,
     stable_extent,
 )
+from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot
 from sogm_service.core.geometry import GridGeometry
 from sogm_service.core.map.tiles import TiledMap
 from sogm_service.service.config import ServiceConfig
@@ -64,6 +68,7 @@ class Ros2Link:
         self.rejections = rejections
         self._stop = threading.Event()
         self.extent: GridGeometry | None = None  # the published extent: it only grows
+        self._changes = RegionTracker()
         self.bridge = Ros2Bridge(session, map_name=config.map.name,
                                  settings=bridge_settings(config), on_ism=self._on_ism,
                                  on_pose=self._on_pose, on_reject=self._on_reject,
@@ -92,20 +97,32 @@ class Ros2Link:
 
     def snapshot(self) -> MapSnapshot:
         """The layers and the fused map over the published extent (the publication region
-        made stable by :func:`~sogm_service.adapters.ros2.views.stable_extent`: it grows in
-        whole tiles and never moves while it holds the region's centre), sampled, pooled and
+        made stable by :func:`~sogm_service.adapters.ros2.extent.stable_extent`: it grows with
+        headroom and never moves while it holds the region's centre), sampled, pooled and
         converted by :func:`~sogm_service.adapters.ros2.views.map_snapshot`."""
-        r = self.config.ros2
-        window = publish_region(self.tiled, self.fleet.positions(), mode=r.region,
-                                radius_m=r.region_radius_m, max_cells=r.max_publish_cells)
-        if window is None:
+        window = self._region()
+        if window is not None:
+            r = self.config.ros2
+            self.extent = stable_extent(self.extent, window, step=GROWTH_STEP_CELLS,
+                                        max_cells=r.max_publish_cells, headroom=HEADROOM)
+        if self.extent is None:
             return MapSnapshot()
-        self.extent = window = stable_extent(self.extent, window,
-                                             step=self.tiled.lattice.tile_size,
-                                             max_cells=r.max_publish_cells)
-        return map_snapshot(self.tiled, window, stamp=time.time(), layers=r.layers,
+        r = self.config.ros2
+        return map_snapshot(self.tiled, self.extent, stamp=time.time(), layers=r.layers,
                             fused_layers=r.fused_layers, method=r.fused_method,
                             publish_layers=r.publish_layers)
+
+    def _region(self) -> GridGeometry | None:
+        """What the published extent must hold now (``[ros2] region``); None: nothing new."""
+        r = self.config.ros2
+        if r.region != "recent":
+            return publish_region(self.tiled, self.fleet.positions(), mode=r.region,
+                                  radius_m=r.region_radius_m, max_cells=r.max_publish_cells)
+        changed = self._changes.changed(self.tiled)
+        if changed is None:
+            return None
+        return geometry_of(shrink_about_centre(changed, r.max_publish_cells),
+                           self.tiled.lattice.resolution)
 
     def _publish_loop(self) -> None:
         while not self._stop.wait(self.config.ros2.publish_period_s):

@@ -87,6 +87,7 @@ class MapsOut(BridgeState):
             token_key = self._entity_token(EntityKind.PUBLISHER, topic, ros_type, QOS_LATCHED)
             pub = Publisher(topic, key, publisher, self._tokens[token_key], gid_of(token_key))
             self._publishers[slot] = pub
+            log.info("ROS 2: advertising %s (%s)", topic, ros_type.rsplit("::", 1)[-1])
             return pub
 
     def _put(self, pub: Publisher, payload: bytes, counter: str) -> None:
@@ -120,7 +121,9 @@ class MapsOut(BridgeState):
                     return False
                 whole = due or sum(r.cells for r in rects) > MAX_UPDATE_SHARE * grid.data.size
             if whole:
-                self._put(pub, cdr.encode_occupancy_grid(grid), "grids_published")
+                payload = cdr.encode_occupancy_grid(grid)
+                pub.whole_bytes = len(payload)
+                self._put(pub, payload, "grids_published")
                 if pub.updates_since_full:  # the latched update must not predate this grid
                     self._put_update(topic, GridUpdateFields(
                         grid.frame, grid.stamp, 0, 0, 0, 0, np.zeros((0, 0), np.int8)))
@@ -129,6 +132,8 @@ class MapsOut(BridgeState):
                 for r in rects:
                     self._put_update(topic, grid_update(grid, r))
                 pub.updates_since_full += len(rects)
+            # what republishing the whole grid at every change would have sent instead
+            self._count("whole_equivalent_bytes", pub.whole_bytes)
             pub.last = grid
         return True
 

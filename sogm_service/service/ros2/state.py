@@ -59,6 +59,7 @@ class Publisher:
     last: OccupancyGridFields | None = None
     full_at: float = 0.0  # time.monotonic() of the last whole grid
     updates_since_full: int = 0
+    whole_bytes: int = 0  # the last whole grid's payload: what each round of updates saves
 
 
 class BridgeState:

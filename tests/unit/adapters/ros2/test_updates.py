@@ -20,7 +20,7 @@ from sogm_service.adapters.ros2.updates import (  # noqa: E402
     changed_rects,
     grid_update,
 )
-from sogm_service.adapters.ros2.views import stable_extent  # noqa: E402
+from sogm_service.adapters.ros2.extent import stable_extent  # noqa: E402
 from sogm_service.core.geometry import GridGeometry, Pose2D  # noqa: E402
 
 UPDATE = "map_msgs/msg/OccupancyGridUpdate"

@@ -13,7 +13,8 @@ from sogm_service.core.geometry import GridGeometry, Pose2D  # noqa: E402
 
 
 def test_publish_region_and_snapshot() -> None:
-    from sogm_service.adapters.ros2.views import map_snapshot, publish_region
+    from sogm_service.adapters.ros2.extent import publish_region
+    from sogm_service.adapters.ros2.views import map_snapshot
     from sogm_service.core.geometry import TileLattice
     from sogm_service.core.map.tiles import TiledMap
     from sogm_service.service.server import pipeline
