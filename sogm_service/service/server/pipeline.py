@@ -192,7 +192,9 @@ class IngestPipeline:
             return False
         # The owners' header checks, so that every member refuses alike (the map-state ones,
         # layer count and memory, are the owners').
-        self.admission.check_names(self.identify(item, msg), msg.robot)
+        layer = self.identify(item, msg)
+        self.admission.check_names(layer, msg.robot)
+        self.admission.check_stamp(msg.stamp, layer, self.tiled.now())
         check_frame(msg, self.tiled.frame)
         if msg.robot:
             self.fleet.check_robot(msg.robot)
