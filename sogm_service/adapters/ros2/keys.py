@@ -95,10 +95,13 @@ def ros_safe_name(name: str) -> str:
     """A layer or map name made into valid ROS name tokens (``/``-separated).
 
     Characters outside ``[A-Za-z0-9_]`` become ``_`` and a token that starts with a digit gets a
-    leading ``_`` (``robot1/2d-obstacle`` -> ``robot1/_2d_obstacle``).
+    leading ``_`` (``robot1/2d-obstacle`` -> ``robot1/_2d_obstacle``).  A class pattern's glob
+    characters are spelled out: ``*`` is ``all`` and ``?`` is ``any`` (``*/laser/obstacle`` ->
+    ``all/laser/obstacle``, ``robot*/person`` -> ``robotall/person``).
     """
     tokens = []
     for tok in name.strip("/").split("/"):
+        tok = tok.replace("*", "all").replace("?", "any")
         if not tok:
             continue
         tok = _ROS_TOKEN_BAD.sub("_", tok)

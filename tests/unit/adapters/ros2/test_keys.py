@@ -134,3 +134,6 @@ def test_data_keys_parse_back_to_topic_layer_and_robot() -> None:
     assert keys.robot_from_topic("/{robot}/pose", "/robot7/pose") == "robot7"
     assert keys.robot_from_topic("/{robot}/pose", "/robot7/odom") is None
     assert keys.ros_safe_name("robot1/2d-obstacle.v2") == "robot1/_2d_obstacle_v2"
+    # a class pattern's topic spells its glob characters out
+    assert keys.ros_safe_name("*/laser/obstacle") == "all/laser/obstacle"
+    assert keys.ros_safe_name("robot?/person") == "robotany/person"
