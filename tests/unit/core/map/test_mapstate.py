@@ -1,0 +1,75 @@
+"""Dropping layers from the map state (MapState.drop_layers): planes, bytes, versions, tiles
+left empty, retired layer indices, and tiles loaded back while a drop runs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+from sogm_service.core.map.tiles import TiledMap
+
+RES, T = 0.5, 8
+
+
+def fused_map() -> TiledMap:
+    """robot1 in tiles (0,0), (1,0); robot2 in (1,0), (2,0): (2,0) holds robot2 alone."""
+    m = TiledMap("test", "map", TileLattice(RES, T))
+    inc = np.full((T, 2 * T), 700, np.int16)
+    m.fuse("robot1/laser", inc, GridGeometry(RES, 2 * T, T, Pose2D(0.0, 0.0, 0.0)), "nearest")
+    m.fuse("robot2/laser", inc, GridGeometry(RES, 2 * T, T, Pose2D(T * RES, 0.0, 0.0)),
+           "nearest")
+    return m
+
+
+def window(m: TiledMap, layers: list[str]) -> np.ndarray:
+    geometry = GridGeometry(RES, 3 * T, T, Pose2D(0.0, 0.0, 0.0))
+    return m.sample(geometry, layers, "nearest")
+
+
+def test_drop_removes_planes_and_empty_tiles_and_leaves_the_rest_bit_for_bit() -> None:
+    m = fused_map()
+    before = window(m, ["robot1/laser"])
+    versions = {i: t.version for i, t in m.tiles.items()}
+    gone, rewritten, emptied = m.drop_layers(["robot2/laser", "nobody/laser"])
+    assert gone == ["robot2/laser"]
+    assert sorted(rewritten) == [(1, 0), (2, 0)] and emptied == [(2, 0)]
+    assert m.layers == ["robot1/laser"]
+    assert sorted(m.tiles) == [(0, 0), (1, 0)] and (2, 0) not in m.known_tiles()
+    assert m.tiles[(1, 0)].version > versions[(1, 0)]  # dirty: the caller stores it
+    assert m.tiles[(0, 0)].version == versions[(0, 0)]
+    assert m.resident_bytes() == 2 * T * T * 2  # one plane in each of two tiles
+    assert np.array_equal(window(m, ["robot1/laser"]), before)
+    snap = m.snapshot((1, 0))
+    assert snap is not None and snap.layers == ["robot1/laser"]
+    names, stack = m.tile_layers(m.tiles[(1, 0)])
+    assert names == ["robot1/laser"] and stack.shape == (1, T, T) and stack.min() == 700
+
+
+def test_a_dropped_index_is_never_reused() -> None:
+    m = fused_map()
+    old = m.layer_id("robot2/laser")
+    m.drop_layers(["robot2/laser"])
+    tile = m.tiles[(1, 0)]
+    with tile.lock:  # a fuse that got the index before the drop adds into a plane not kept
+        m._plane(tile, old)[:] = 5
+    assert old not in tile.planes
+    new = m.layer_id("robot2/laser", create=True)  # the name again: a new, empty layer
+    assert new != old
+    assert not window(m, ["robot2/laser"]).any()
+
+
+def test_tiles_loaded_during_a_drop_leave_the_layers_out_and_come_back_dirty() -> None:
+    stack = np.stack([np.full((T, T), 300, np.int16), np.full((T, T), -400, np.int16)])
+    m = TiledMap("test", "map", TileLattice(RES, T),
+                 loader=lambda i, j: (["robot1/laser", "robot2/laser"], stack.copy(), 1.0))
+    m.stored = {(0, 0), (1, 0)}
+    m.adopt_layers(["robot1/laser", "robot2/laser"])
+    m.drop_layers(["robot2/laser"])
+    tile = m.get_tile((0, 0))
+    assert tile is not None and tile.dirty and len(tile.planes) == 1
+    assert int(next(iter(tile.planes.values())).min()) == 300  # robot1's plane
+    assert m.layers == ["robot1/laser"]  # the load did not bring the layer back
+    m.end_drop()
+    again = m.get_tile((1, 0))
+    assert again is not None and not again.dirty and sorted(m.layers) == [
+        "robot1/laser", "robot2/laser"]
