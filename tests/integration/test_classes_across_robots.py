@@ -10,6 +10,7 @@ exact names from the same server, and the Bayesian rule in probability space (od
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -26,7 +27,7 @@ pytestmark = pytest.mark.integration
 RES = 0.1
 P1, P2, PERSON = 0.7, 0.8, 0.9  # robot1's, robot2's obstacle probability; robot1's person
 # The window: x in [-4, 4), y in [-1, 1), on the map's cells (80 x 20).
-WINDOW = dict(x=0.0, y=0.0, width=8.0, height=2.0, resolution=RES, interp="nearest")
+WINDOW: dict[str, Any] = dict(x=0.0, y=0.0, width=8.0, height=2.0, resolution=RES, interp="nearest")
 WEST, MIDDLE, EAST = slice(0, 35), slice(35, 45), slice(45, 80)  # columns of the window
 LASERS = "*/laser/obstacle"
 
@@ -150,5 +151,5 @@ def test_a_raw_zenoh_get_names_a_class_in_the_selector_and_in_a_body(
     finally:
         session.close()
     assert sel.ok is not None and body.ok is not None
-    a, b = (msgpack.unpackb(r.ok.payload.to_bytes()) for r in (sel, body))
+    a, b = (msgpack.unpackb(ok.payload.to_bytes()) for ok in (sel.ok, body.ok))
     assert a["layers"] == b["layers"] == [LASERS] and a["data"] == b["data"]

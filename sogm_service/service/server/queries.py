@@ -51,12 +51,16 @@ def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = 
 
     A selector's values are strings parsed as their field's type (``width=2.5``,
     ``labels=true``); a body's values must already have it (``{"width": true}`` and
-    ``{"width": "2"}`` are refused, as an ISM's would be).  A parameter given twice in the
-    selector or in the body is refused before this (:func:`~sogm_service.wire.queries.
-    selector_params`, :func:`~sogm_service.wire.queries.unpack_body`); one given in both, the
-    selector's wins.
+    ``{"width": "2"}`` are refused, as an ISM's would be).  A parameter is given once: twice
+    in the selector or in the body is refused before this (:func:`~sogm_service.wire.queries.
+    selector_params`, :func:`~sogm_service.wire.queries.unpack_body`), in both here.
     """
     merged: dict[str, Any] = unpack_body(body) if body else {}
+    both = sorted(k for k in params if k in merged)
+    if both:
+        raise QueryError("bad_parameter", f"parameter {both[0][:40]!r} is given more than "
+                                          "once (in the selector and in the body)",
+                         both[0][:40])
     try:
         if params:
             from_selector = cls.model_validate_strings(dict(params))
