@@ -268,11 +268,12 @@ class Ros2Settings(_Section):
     publish_layers: Annotated[bool, _doc(
         "Also publish each layer on <topic_root>/<map>/layers/<layer>.")] = True
     layers: Annotated[list[str] | None, _doc(
-        "Layers published one by one; unset: every layer.", "",
-        ["robot1/laser/obstacle"])] = None
+        "Layers published one by one, by name or class pattern (a pattern's matching layers "
+        "fused by the Bayesian rule into one grid, on a topic spelling * as all); unset: every "
+        "layer.", "", ["*/laser/obstacle"])] = None
     fused_layers: Annotated[list[str] | None, _doc(
-        "Layers pooled into <topic_root>/<map>/map; unset: every layer.", "",
-        ["robot1/laser/obstacle"])] = None
+        "Layers or class patterns pooled into <topic_root>/<map>/map; unset: every layer.", "",
+        ["*/laser/obstacle", "*/person"])] = None
     fused_method: Annotated[Literal["max", "bayes"], _doc(
         "How the layers are pooled (paper Eq. 6): max (P_M) or bayes (P_B).")] = "max"
     max_tilt_rad: Annotated[float, _doc(
