@@ -44,6 +44,9 @@ class GatheredMap(TiledMap):
     def layer_id(self, layer: str, create: bool = False) -> int:
         return self._base.layer_id(layer, create)
 
+    def half_life(self, lid: int) -> float | None:
+        return self._base.half_life(lid)  # layer indices are the base map's
+
     def known_tiles(self) -> set[TileIndex]:
         return self._base.known_tiles()
 
