@@ -1,6 +1,6 @@
 """The paper's evaluation (section IV): SEVDS against OpenCV's superpixels on table-top SOGMs.
 
-``sogm-service eval supercells [--out DIR] [--scenes N] [--seed S] [--quick]`` runs
+``sogm-service eval supercells [--out DIR] [--scenes N] [--rooms N] [--seed S] [--quick]`` runs
 :func:`run_supercell_evaluation`:
 
 1. **Scenes.**  ``scenes`` randomised table-top rooms (:func:`sogm_service.sim.worlds.
@@ -12,8 +12,10 @@
    "D(c_hat) < D(c)", ``SEVDS-E`` = the total-energy variant), and OpenCV's SEEDS, SLIC, SLICO
    and LSC.  OpenCV gets the stack as an 8-bit image ``round(255 p)`` (SEEDS needs integers).
 3. **Matched counts and tuning.**  Superpixel counts follow SEVDS's initial grid: block edges
-   ``8, 12, ..., 32`` cells (the paper's rule of thumb is 8); SEEDS gets that count, SLIC / SLICO
-   / LSC the region size of the same edge.  At every count each algorithm runs a small grid of its
+   ``8, 12, ..., 32`` cells (the paper's rule of thumb is 8); SEEDS is asked for the count that
+   makes its number of superpixels nearest SEVDS's (:func:`sogm_service.eval.roomeval.
+   seeds_request`: it rounds a request to its own block grid), SLIC / SLICO / LSC get the region
+   size of the same edge.  At every count each algorithm runs a small grid of its
    own parameters and keeps the set minimising the scene mean of ``(1 - BR) + UE`` (Stutz et al.;
    one parameter set for all scenes, not one per scene).
 4. **Metrics** (:mod:`sogm_service.eval.metrics`): Pureness (Eq. 12, on the classes), ICV and
@@ -24,6 +26,9 @@ EV (on the
    parameters), ``results.md`` (tables: at the paper's 8-cell rule, and the mean over counts),
    ``<metric>.png`` (each metric over the number of superpixels, paper Fig. 12-16) and
    ``segmentations.png`` (paper Fig. 11: class-majority colouring on top, boundaries in red below).
+6. **Room maps** (``rooms`` of them, :mod:`sogm_service.eval.roomeval`): labelled room maps,
+   SEVDS's defaults against tuned SEEDS at equal count (UE, BR, compactness, time), in
+   ``rooms.csv`` and a third table of ``results.md``.
 
 The figures are drawn by :mod:`sogm_service.eval.figures`.
 """
@@ -48,6 +53,14 @@ from sogm_service.core.sevds.segment import SevdsParams, sevds
 from sogm_service.eval import metrics
 from sogm_service.eval.figures import metric_plots, segmentation_figure
 from sogm_service.eval.metrics import METRICS
+from sogm_service.eval.roomeval import (
+    SEEDS_GRID,
+    SEEDS_QUICK,
+    rooms_markdown,
+    run_room_evaluation,
+    run_seeds,
+    write_rows,
+)
 from sogm_service.eval.scenes import Labels, Scene, tabletop_scene
 
 Params = dict[str, float | int | str]
@@ -87,13 +100,8 @@ def _run_sevds(criterion: str) -> Callable[[npt.NDArray[np.float32], int, Params
 
 
 def _run_seeds(stack: npt.NDArray[np.float32], block: int, p: Params) -> Labels:
-    img = _to_u8(stack)
-    h, w, c = img.shape
-    count = -(-h // block) * -(-w // block)
-    seeds = cv2.ximgproc.createSuperpixelSEEDS(w, h, c, count, int(p["levels"]), int(p["prior"]),
-                                               int(p["bins"]), False)
-    seeds.iterate(img, 4)
-    return np.asarray(seeds.getLabels(), np.int32)
+    _, h, w = stack.shape
+    return run_seeds(stack, -(-h // block) * -(-w // block), p)  # SEVDS's count
 
 
 def _run_slic(kind: int) -> Callable[[npt.NDArray[np.float32], int, Params], Labels]:
@@ -250,12 +258,14 @@ def run_supercell_evaluation(
     progress: bool = True,
     scene_factory: Callable[[int], Scene] | None = None,
     blocks: Sequence[int] | None = None,
+    rooms: int = 4,
 ) -> EvaluationResult:
     """Run the evaluation of section IV and write its tables and figures into ``out_dir``.
 
     ``scene_factory(seed) -> Scene`` defaults to :func:`tabletop_scene` (the simulator);
     ``blocks`` (block edges, i.e. superpixel counts) defaults to ``8, 12, ..., 32``
-    (``8, 16, 32`` with ``quick``, which also shrinks the parameter grids).
+    (``8, 16, 32`` with ``quick``, which also shrinks the parameter grids); ``rooms`` labelled
+    room maps (:mod:`sogm_service.eval.roomeval`, 0: none) at 8- and 16-cell blocks.
     """
     t0 = time.time()
     out = Path(out_dir)
@@ -263,7 +273,7 @@ def run_supercell_evaluation(
     make = scene_factory or tabletop_scene
     edges = tuple(blocks or (BLOCKS_QUICK if quick else BLOCKS_FULL))
     grids = parameter_grids(quick)
-    total = scenes + sum(len(g) for g in grids.values()) * len(edges)
+    total = scenes + sum(len(g) for g in grids.values()) * len(edges) + (8 if rooms else 0)
     bar = _Progress(total, progress)
     scene_list = []
     for k in range(scenes):
@@ -280,10 +290,18 @@ def run_supercell_evaluation(
             rows.extend(_rows_for(alg, block, params, labels, scene_list))
             if block == figure_block:
                 shown[alg] = labels[-1]
+    room_rows = run_room_evaluation(rooms, seed, step=bar.step,
+                                    seeds_grid=SEEDS_QUICK if quick else SEEDS_GRID) \
+        if rooms else []
     bar.close()
     files = [out / "results.csv", out / "results.md", out / "segmentations.png"]
     write_csv(files[0], rows)
     text = markdown_tables(rows, figure_block)
+    if room_rows:
+        files.append(out / "rooms.csv")
+        write_rows(files[-1], room_rows)
+        text += (f"\n### Room maps ({rooms}, one occupancy layer): SEVDS against tuned SEEDS at "
+                 f"equal count\n\n" + rooms_markdown(room_rows))
     files[1].write_text(f"# SEVDS evaluation ({scenes} scenes, seed {seed})\n\n{text}")
     cv2.imwrite(str(files[2]), segmentation_figure(scene_list[-1], shown))
     files += metric_plots(rows, out)
@@ -294,6 +312,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("eval-supercells"),
                    help="output folder (default %(default)s)")
     p.add_argument("--scenes", type=int, default=4, help="number of scenes (default 4)")
+    p.add_argument("--rooms", type=int, default=4,
+                   help="labelled room maps to compare SEVDS and SEEDS on (default 4, 0: none)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first scene (default 0)")
     p.add_argument("--quick", action="store_true",
                    help="3 superpixel counts and minimal parameter grids")
@@ -301,11 +321,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``eval supercells``: run, then print the markdown table and the files."""
-    if args.scenes < 1:
-        print("sogm-service: eval supercells: --scenes must be >= 1", file=sys.stderr)
+    if args.scenes < 1 or args.rooms < 0:
+        print("sogm-service: eval supercells: --scenes must be >= 1 and --rooms >= 0",
+              file=sys.stderr)
         return 2
     result = run_supercell_evaluation(args.out, scenes=args.scenes, seed=args.seed,
-                                      quick=args.quick, progress=True)
+                                      quick=args.quick, progress=True, rooms=args.rooms)
     print(result.markdown)
     print(f"wrote {len(result.files)} files to {result.out_dir} in {result.seconds:.0f} s")
     return 0

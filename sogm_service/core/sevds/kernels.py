@@ -105,8 +105,13 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
            s: int, cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
            s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
            dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
-           centres: npt.NDArray[np.float64], gamma: float, energy: bool, reverse: bool) -> int:
+           centres: npt.NDArray[np.float64], gamma: float, energy: bool, reverse: bool,
+           cols: int, block: int, margin: int) -> int:
     """One raster sweep of unit moves on the unit grid ``ul`` (units of ``s`` x ``s`` cells).
+
+    A unit may join supercell c only inside c's box: its initial ``block`` x ``block`` square
+    (row ``c // cols``, column ``c % cols`` of the initial grid) grown by ``margin`` cells on
+    every side, so no supercell ever spans more than ``block + 2 margin`` cells either way.
 
     Per supercell: count, sums of x and x^2 per layer, perimeter, D' and the K-bin histograms,
     all updated in place.  Single cells (``s == 1``) take their moments from their bin index
@@ -178,6 +183,11 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
             for r in range(4):
                 c = nb_lab[r]
                 if c < 0 or c == a or _seen_before(nb_lab, r):
+                    continue
+                cr = c // cols  # the extent bound: the unit must lie inside c's box
+                cc = c - cr * cols
+                if i * s < cr * block - margin or (i + 1) * s > (cr + 1) * block + margin \
+                        or j * s < cc * block - margin or (j + 1) * s > (cc + 1) * block + margin:
                     continue
                 e_c = _edges_to(c, nb_lab, nb_w)
                 inv = 1.0 / (cnt[c] + u)
@@ -296,15 +306,17 @@ def run(qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32],
          cnt: npt.NDArray[np.float64], s1: npt.NDArray[np.float64],
          s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
          dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
-         centres: npt.NDArray[np.float64], gamma: float,
-         energy: bool) -> tuple[npt.NDArray[np.int32], int]:
+         centres: npt.NDArray[np.float64], gamma: float, energy: bool, block: int,
+         margin: int) -> tuple[npt.NDArray[np.int32], int]:
     """The whole schedule: ``sweeps[l]`` alternating sweeps of units of ``sizes[l]`` cells.
 
-    Returns the cell labels and the number of moves.  ``labels`` is updated in place when the
+    Returns the cell labels and the number of moves; ``block`` and ``margin`` bound every
+    supercell's extent (:func:`_sweep`).  ``labels`` is updated in place when the
     schedule is only cell level.  One call from Python, not one per sweep with the per-level
     setup (unit grid, edge lengths, label expansion) in numpy around them.
     """
     h, w = labels.shape
+    cols = -(-w // block)
     moves = 0
     for lev in range(sizes.size):
         s = sizes[lev]
@@ -326,7 +338,7 @@ def run(qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32],
             cw[j] = min(s, w - s * j)
         for sweep in range(sweeps[lev]):
             moves += _sweep(ul, uc, m1, m2, rh, cw, qt, s, cnt, s1, s2, perim, dval, hist,
-                            centres, gamma, energy, sweep % 2 == 1)
+                            centres, gamma, energy, sweep % 2 == 1, cols, block, margin)
         if s > 1:
             labels = np.empty((h, w), np.int32)
             for v in range(h):

@@ -16,6 +16,16 @@ A move must keep the losing supercell locally connected (the 3x3 simple-point te
 the grid of the current level), may not empty it, and -- the paper's corner-case rule -- a
 supercell whose total variance is zero may not shrink.
 
+**Compact and connected.**  The simple-point test keeps every supercell one 4-connected region
+(it starts as one square, and no move splits it).  The extent bound keeps it compact: a unit
+may join supercell c only inside c's box, its initial block grown by ``margin =
+(extent - 1) * block_size / 2`` cells on every side, so a supercell spans at most
+``extent * block_size`` cells in x and in y (default ``extent`` 3: one block of reach each
+way, enough for any boundary, which lies within half a block of some block edge).  Without the
+bound a run of cells of one bin (a one-cell wall) is absorbed cell by cell along its length by
+whichever supercell reaches it first, and one supercell rings a whole room; with it a wall is
+cut into pieces of at most ``extent`` blocks.
+
 **State per supercell (Eq. 9-10).**  One K-bin histogram per semantic layer, ``hist[c, n, k]``
 (bin ``k`` covers probabilities ``[k/K, (k+1)/K)``, the last bin includes 1), never the joint
 ``K**N`` histogram of Eq. 9: by Eq. 10 only the marginals matter, so memory and time are linear in
@@ -87,6 +97,8 @@ BOUNDS: Final[dict[str, tuple[int, int]]] = {
 }
 """Inclusive ranges of the integer parameters: the kernel's valid range and what a
 ``supercells`` query may ask for (its cost grows with each), one source for both."""
+EXTENT_BOUNDS: Final[tuple[float, float]] = (1.0, 64.0)
+"""Inclusive range of ``extent``: the most a supercell may span, in block sizes."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,8 +109,15 @@ class SevdsParams:
     levels: int = 3
     bins: int = 5
     iterations: int = 4
-    gamma: float = 0.01
-    criterion: Criterion = "distribution"
+    gamma: float = 0.0
+    criterion: Criterion = "energy"
+    extent: float = 3.0
+
+    @property
+    def margin(self) -> int:
+        """Cells a supercell may reach beyond its initial block on each side (the extent
+        bound: at most ``extent * block_size`` cells across, rounded down to whole cells)."""
+        return int((self.extent - 1.0) * self.block_size) // 2
 
     def __post_init__(self) -> None:
         for name, (lo, hi) in BOUNDS.items():
@@ -107,6 +126,9 @@ class SevdsParams:
                 raise ValueError(f"{name} must lie in [{lo}, {hi}], got {value}")
         if not (math.isfinite(self.gamma) and self.gamma >= 0):
             raise ValueError(f"gamma must be finite and >= 0, got {self.gamma}")
+        if not (math.isfinite(self.extent) and EXTENT_BOUNDS[0] <= self.extent
+                <= EXTENT_BOUNDS[1]):
+            raise ValueError(f"extent must lie in {list(EXTENT_BOUNDS)}, got {self.extent}")
         if self.criterion not in CRITERIA:
             raise ValueError(f"criterion must be one of {CRITERIA}, got {self.criterion!r}")
 
@@ -205,7 +227,7 @@ def sevds(stack: npt.ArrayLike, params: SevdsParams | None = None) -> SevdsResul
     sizes = np.array([*p.block_sizes(), 1], np.int64)
     sweeps = np.array([2] * (sizes.size - 1) + [p.iterations], np.int64)
     labels, moves = k.run(qt, labels, sizes, sweeps, cnt, s1, s2, perim, dval, hist, centres,
-                         float(p.gamma), p.criterion == "energy")
+                         float(p.gamma), p.criterion == "energy", p.block_size, p.margin)
     return SevdsResult(np.ascontiguousarray(labels, dtype=np.int32), hist, int(moves))
 
 

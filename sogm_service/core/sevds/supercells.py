@@ -4,14 +4,22 @@
 on an N-layer SOGM
 window and turns the label image into the paper's triples ``C = (T_c, L_c, P_c)``:
 
-* ``T_c`` -- the centroid in map coordinates: the mean continuous cell coordinate ``(u, v)`` of the
-  supercell's cells, mapped by ``GridGeometry.cell_to_world()`` (cell centres on integers);
+* ``T_c`` -- the node's place in map coordinates: the centre of the supercell's cell nearest its
+  centroid (the mean continuous cell coordinate ``(u, v)`` of its cells), mapped by
+  ``GridGeometry.cell_to_world()`` (cell centres on integers).  The centroid of a bent or
+  hollow supercell can lie outside it, on another object; the node never does (ties: the first
+  such cell in raster order).  The centroid itself is kept next to it;
 * ``L_c`` -- the adjacent supercells (sharing a 4-neighbour cell edge);
 * ``P_c`` -- the feature vector of Eq. 11.  ``Odd(P_c)_n = prod_{m in c} Odd(P(m_n))`` is, in
   log-odds, the *sum* of the cells' log-odds of layer n (architecture, section 1:
   docs/architecture.md#1-log-odds-everywhere), reported in nats.
   The mean probability of every layer is reported next to it, because a sum of log-odds grows with
   the area and is hard to read on its own.
+
+Each node's evidence (:func:`node_evidence`): *occupied* by its dominant layer when that layer's
+mean probability exceeds ``0.5 + EVIDENCE_MARGIN``, *free* when no layer does but one lies below
+``0.5 - EVIDENCE_MARGIN`` (observed free floor is evidence), *unknown* when every layer's mean is
+within the margin of 0.5 (no cell observed, or as much for as against).
 
 The input is either a float stack of probabilities in [0, 1] or the map's own int16 fixed-point
 log-odds (:mod:`sogm_service.core.logodds`); in the second case the log-odds sums are exact.  For a
@@ -31,6 +39,13 @@ from sogm_service.core.geometry import GridGeometry
 from sogm_service.core.sevds.segment import SevdsParams, SevdsResult, sevds
 
 F64 = npt.NDArray[np.float64]
+
+EVIDENCE_MARGIN = 0.01
+"""How far from 0.5 a node's mean probability must lie to count as evidence."""
+FREE = -1
+""":func:`node_evidence` of a node observed free (no layer occupied)."""
+UNKNOWN = -2
+""":func:`node_evidence` of a node without evidence."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,8 +67,10 @@ class SupercellGraph:
     """Supercells of one window: label image, per-node arrays and the adjacency.
 
     ``centroids`` ``(S, 2)`` map x, y; ``centroids_cell`` ``(S, 2)`` continuous u, v;
-    ``areas`` ``(S,)`` cells; ``edges`` ``(E, 2)`` pairs ``i < j``; ``logodds_sum`` and
-    ``mean_probability`` ``(S, N)`` (Eq. 11 in nats, and the mean of P per layer).
+    ``nodes_cell`` ``(S, 2)`` the u, v of each supercell's cell nearest its centroid and
+    ``positions`` ``(S, 2)`` its map x, y (``T_c``: inside the supercell); ``areas`` ``(S,)``
+    cells; ``edges`` ``(E, 2)`` pairs ``i < j``; ``logodds_sum`` and ``mean_probability``
+    ``(S, N)`` (Eq. 11 in nats, and the mean of P per layer).
     """
 
     labels: npt.NDArray[np.int32]
@@ -64,6 +81,8 @@ class SupercellGraph:
     edges: npt.NDArray[np.int32]
     logodds_sum: F64
     mean_probability: F64
+    nodes_cell: npt.NDArray[np.int64]
+    positions: F64
 
     @property
     def count(self) -> int:
@@ -81,17 +100,50 @@ class SupercellGraph:
             out[b].append(a)
         return [tuple(sorted(n)) for n in out]
 
+    def evidence(self) -> npt.NDArray[np.int64]:
+        """:func:`node_evidence` of every node."""
+        return node_evidence(self.mean_probability)
+
     def nodes(self) -> list[Supercell]:
         """The graph as a list of :class:`Supercell` (for the wire and for people)."""
         nbrs = self.neighbors()
         res2 = self.geometry.resolution**2
         return [
-            Supercell(i, float(self.centroids[i, 0]), float(self.centroids[i, 1]),
+            Supercell(i, float(self.positions[i, 0]), float(self.positions[i, 1]),
                       int(self.areas[i]), float(self.areas[i] * res2), nbrs[i],
                       tuple(float(x) for x in self.logodds_sum[i]),
                       tuple(float(x) for x in self.mean_probability[i]))
             for i in range(self.count)
         ]
+
+
+def node_evidence(mean_probability: npt.ArrayLike,
+                  margin: float = EVIDENCE_MARGIN) -> npt.NDArray[np.int64]:
+    """``(S,)`` per node: its dominant layer (``>= 0``) when that layer's mean probability
+    exceeds ``0.5 + margin``, else :data:`FREE` when a layer's lies below ``0.5 - margin``, else
+    :data:`UNKNOWN`.  ``mean_probability``: ``(S, N)``."""
+    mp = np.asarray(mean_probability, dtype=np.float64)
+    if mp.ndim != 2 or mp.shape[1] < 1:
+        raise ValueError(f"expected (S, N) mean probabilities, got shape {mp.shape}")
+    if mp.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    best = np.argmax(mp, axis=1)
+    out = np.where(np.min(mp, axis=1) < 0.5 - margin, FREE, UNKNOWN)
+    return np.asarray(np.where(mp[np.arange(mp.shape[0]), best] > 0.5 + margin, best, out),
+                      dtype=np.int64)
+
+
+def nearest_cells(labels: npt.ArrayLike, centroids_cell: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """``(S, 2)`` u, v of each label's cell nearest its point in ``centroids_cell`` (``(S, 2)``
+    continuous u, v; cell centres on integers); ties go to the first cell in raster order."""
+    lab = np.asarray(labels, dtype=np.int64)
+    c = np.asarray(centroids_cell, dtype=np.float64)
+    flat = lab.ravel()
+    v, u = np.divmod(np.arange(flat.size, dtype=np.int64), lab.shape[1])
+    d2 = (u - c[flat, 0]) ** 2 + (v - c[flat, 1]) ** 2
+    order = np.lexsort((d2, flat))  # by label, then distance; stable: raster order on ties
+    first = order[np.searchsorted(flat[order], np.arange(c.shape[0]))]
+    return np.stack([u[first], v[first]], axis=1)
 
 
 def split_stack(stack: npt.ArrayLike, eps0: float = logodds.DEFAULT_EPS0) -> tuple[F64, F64]:
@@ -142,12 +194,14 @@ def supercell_graph(labels: npt.ArrayLike, stack: npt.ArrayLike,
                   axis=1) / areas[:, None]
     m = geo.cell_to_world()
     xy = uv @ m[:2, :2].T + m[:2, 2]
+    inside = nearest_cells(lab, uv) if count else np.zeros((0, 2), np.int64)
+    pos = inside.astype(np.float64) @ m[:2, :2].T + m[:2, 2]
 
     def per_layer(values: F64) -> F64:
         return np.stack([np.bincount(flat, layer.ravel(), count) for layer in values], axis=1)
 
     return SupercellGraph(lab, geo, xy, uv, areas.astype(np.int64), adjacency(lab),
-                          per_layer(nats), per_layer(prob) / areas[:, None])
+                          per_layer(nats), per_layer(prob) / areas[:, None], inside, pos)
 
 
 def extract_supercells(stack: npt.ArrayLike, geometry: GridGeometry | None = None,

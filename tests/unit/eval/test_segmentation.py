@@ -37,7 +37,7 @@ def synthetic_scene(seed: int) -> scenes.Scene:
 def result(tmp_path_factory: pytest.TempPathFactory) -> ev.EvaluationResult:
     out = tmp_path_factory.mktemp("eval")
     return ev.run_supercell_evaluation(out, scenes=2, seed=1, quick=True, progress=False,
-                                       scene_factory=synthetic_scene, blocks=(8, 16))
+                                       scene_factory=synthetic_scene, blocks=(8, 16), rooms=1)
 
 
 def test_gt_segments_are_connected_components_per_class() -> None:
@@ -51,7 +51,7 @@ def test_gt_segments_are_connected_components_per_class() -> None:
 
 def test_outputs_are_written(result: ev.EvaluationResult) -> None:
     names = {p.name for p in result.files}
-    assert {"results.csv", "results.md", "segmentations.png"} <= names
+    assert {"results.csv", "results.md", "segmentations.png", "rooms.csv"} <= names
     assert {f"{m}.png" for m in ev.METRICS} <= names
     for p in result.files:
         assert p.exists() and p.stat().st_size > 0
@@ -114,6 +114,8 @@ def test_cli_parser_and_main(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
     assert cli.main(["eval", "supercells", "--out", str(tmp_path), "--scenes", "3"]) == 0
     assert calls[0][1]["scenes"] == 3 and calls[0][1]["quick"] is False
     assert cli.main(["eval", "supercells", "--scenes", "0"]) == 2
+    assert cli.main(["eval", "supercells", "--rooms", "-1"]) == 2
+    assert calls[0][1]["rooms"] == 4
     with pytest.raises(SystemExit) as refused:
         cli.main(["eval", "nothing"])
     assert refused.value.code == 2
