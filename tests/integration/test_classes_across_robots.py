@@ -9,7 +9,9 @@ exact names from the same server, and the Bayesian rule in probability space (od
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -21,6 +23,7 @@ from sogm_service.core.geometry import Pose2D
 from sogm_service.wire.errors import ServiceError
 from tests.conftest import ServerProcess, start_server, wait_processed
 from tests.helpers import raw_session
+from tests.integration.test_cli import one_line_error, run_cli
 
 pytestmark = pytest.mark.integration
 
@@ -153,3 +156,23 @@ def test_a_raw_zenoh_get_names_a_class_in_the_selector_and_in_a_body(
     assert sel.ok is not None and body.ok is not None
     a, b = (msgpack.unpackb(ok.payload.to_bytes()) for ok in (sel.ok, body.ok))
     assert a["layers"] == b["layers"] == [LASERS] and a["data"] == b["data"]
+
+
+def test_the_cli_asks_a_class_and_names_its_members(srv: ServerProcess,
+                                                    tmp_path: Path) -> None:
+    png = tmp_path / "lasers.png"
+    proc = run_cli("query", "submap", "--connect", srv.endpoint, "--width", "8", "--height",
+                   "2", "--resolution", str(RES), "--layers", f"{LASERS},robot1/camera/person",
+                   "--png", str(png), "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["layers"] == [LASERS, "robot1/camera/person"]
+    assert out["classes"] == {LASERS: ["robot1/laser/obstacle", "robot2/laser/obstacle"]}
+    assert sorted(Path(p).name for p in out["written"]) == [
+        "lasers_all_laser_obstacle.png", "lasers_robot1_camera_person.png"]
+    assert all(Path(p).stat().st_size > 0 for p in out["written"])
+    text = run_cli("query", "fused", "--connect", srv.endpoint, "--layers", LASERS)
+    assert f"class {LASERS}: robot1/laser/obstacle + robot2/laser/obstacle" in text.stdout
+    refused = one_line_error(run_cli("query", "submap", "--connect", srv.endpoint,
+                                     "--layers", "*/lidar/*"))
+    assert "unknown_layer" in refused and "*/lidar/*" in refused
