@@ -14,11 +14,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from sogm_service.core.sevds.supercells import FREE, node_evidence
+
 if TYPE_CHECKING:  # only for annotations: drawing needs no Zenoh
     from sogm_service.client.results import GridResult
     from sogm_service.wire.queries import SupercellReply
 
 UNKNOWN_BGR = (150, 110, 70)
+FREE_NODE_BGR = (0, 140, 255)  # a supercell node observed free: orange
 _UNKNOWN_TOL = 0.5 / 255.0
 
 
@@ -81,8 +84,10 @@ def supercell_overlay(background: npt.NDArray, labels: npt.NDArray[np.int32],
     """The topometric graph (paper Fig. 6) over a map picture.
 
     ``background``: ``(H, W)`` probabilities; ``labels``: the supercell image; borders in red,
-    edges between adjacent supercells as lines, centroids as dots coloured by each supercell's
-    dominant layer (-1: no evidence, grey).  Returned with map y up, like every picture here.
+    edges between adjacent supercells as lines, nodes as dots coloured by each supercell's
+    evidence (``dominant``: its occupied layer, or ``FREE`` orange, or ``UNKNOWN`` grey, as
+    :func:`sogm_service.core.sevds.supercells.node_evidence`).  Returned with map y up, like
+    every picture here.
     """
     import cv2
 
@@ -100,7 +105,8 @@ def supercell_overlay(background: npt.NDArray, labels: npt.NDArray[np.int32],
     colors = class_colors(max(n_classes, 1))
     for k, (u, v) in enumerate(pts):
         d = int(dominant[k])
-        color = (128, 128, 128) if d < 0 else tuple(int(c) for c in colors[d])
+        color = tuple(int(c) for c in colors[d]) if d >= 0 else \
+            (FREE_NODE_BGR if d == FREE else (128, 128, 128))
         cv2.circle(img, (int(u), int(v)), max(2, scale), color, -1, cv2.LINE_AA)
     return np.ascontiguousarray(img[::-1])
 
@@ -113,8 +119,8 @@ def draw_graph(reply: SupercellReply, fused: GridResult, scale: int = 3) -> npt.
     xy = np.array([[n.x, n.y, 1.0] for n in reply.nodes]).reshape(-1, 3)
     cells = (to_cell @ xy.T).T[:, :2]
     edges = [(n.id, m) for n in reply.nodes for m in n.neighbors if n.id < m]
-    dominant = np.array([int(np.argmax(n.mean_probability))
-                         if max(n.mean_probability) > 0.51 else -1 for n in reply.nodes])
+    dominant = node_evidence(np.array([n.mean_probability for n in reply.nodes],
+                                      dtype=np.float64).reshape(len(reply.nodes), -1))
     return supercell_overlay(fused.probabilities(), reply.labels.array(), cells, edges,
                              dominant, len(reply.layers), scale)
 
@@ -274,7 +280,8 @@ def save_graph_png(path: str | os.PathLike[str], reply: SupercellReply, fused: G
     legend = [*PROBABILITY_LEGEND[:2], ("supercell border", (40, 40, 220)),
               ("edge between neighbours", (60, 160, 60)),
               *[(f"node: {name}", c) for name, c in class_legend(list(reply.layers))[:-1]],
-              ("node without evidence", (128, 128, 128)), PROBABILITY_LEGEND[2]]
+              ("node: free floor (observed, no layer occupied)", FREE_NODE_BGR),
+              ("node without evidence (unknown)", (128, 128, 128)), PROBABILITY_LEGEND[2]]
     return save_map_png(path, img, fused.geometry,
                         title=f"supercells: {len(reply.nodes)} nodes (SEVDS)", legend=legend,
                         robots=robots)

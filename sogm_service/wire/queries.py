@@ -107,7 +107,7 @@ class SupercellRequest(WindowRequest):
                                le=_SEVDS_BOUNDS["bins"][1])] = _SEVDS.bins
     iterations: Annotated[StrictInt, Field(ge=_SEVDS_BOUNDS["iterations"][0],
                                      le=_SEVDS_BOUNDS["iterations"][1])] = _SEVDS.iterations
-    gamma: Annotated[WireFloat, Field(ge=0)] = _SEVDS.gamma  # tuned on the evaluation scenes
+    gamma: Annotated[WireFloat, Field(ge=0)] = _SEVDS.gamma  # tuned on the room maps
     criterion: Criterion = _SEVDS.criterion
     labels: StrictBool = False
 

@@ -9,6 +9,8 @@ import pytest
 
 from sogm_service.apps.cli import main as cli_main
 from sogm_service.core import logodds
+from sogm_service.core.geometry import GridGeometry, Pose2D
+from sogm_service.core.sevds.supercells import FREE, UNKNOWN, node_evidence
 from sogm_service.wire.errors import ServiceError
 from tests.conftest import ServerProcess, wait_processed
 
@@ -54,6 +56,31 @@ def test_supercell_graph_partitions_the_window_with_eq11_features(
     assert left.mean_probability[1] == pytest.approx(0.1, abs=0.01)
     assert left.area_m2 == pytest.approx(left.area_cells * 0.05 ** 2)
     assert 0.0 <= left.x <= 3.2 and 0.0 <= left.y <= 6.4
+
+
+def test_nodes_sit_inside_their_supercells_and_free_floor_is_evidence(
+        server: ServerProcess) -> None:
+    # A one-cell wall ring around free floor, unknown outside (as a room of a laser map).
+    p = np.full((128, 128), 0.5, np.float32)
+    p[16:112, 16:112] = 0.95
+    p[17:111, 17:111] = 0.05
+    with server.client(timeout=30) as client:
+        client.publish_ism("ism/r/laser/occ", p, resolution=0.05)
+        wait_processed(client, 1)
+        reply = client.supercells(x=3.2, y=3.2, width=6.4, height=6.4, labels=True)
+    labels = reply.labels.array()
+    g = GridGeometry(reply.resolution, reply.width, reply.height,
+                     Pose2D(reply.origin.x, reply.origin.y, reply.origin.yaw))
+    uv = (g.world_to_cell() @ np.array([[n.x, n.y, 1.0] for n in reply.nodes]).T)[:2].T
+    u, v = np.rint(uv).astype(int).T
+    assert (labels[v, u] == [n.id for n in reply.nodes]).all()  # every node in its own cell
+    evidence = node_evidence(np.array([n.mean_probability for n in reply.nodes]))
+    floor = p[v, u] < 0.1
+    assert floor.sum() >= 50 and (evidence[floor] == FREE).all()
+    assert (evidence[p[v, u] == 0.5] == UNKNOWN).all()
+    for k in range(len(reply.nodes)):  # compact: no supercell spans more than 3 blocks
+        rows, cols = np.nonzero(labels == k)
+        assert max(np.ptp(rows), np.ptp(cols)) + 1 <= 3 * 8
 
 
 def test_supercell_query_with_bad_parameters_names_them(server: ServerProcess) -> None:

@@ -39,6 +39,7 @@ from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import loopback_settings, open_session
 from sogm_service.core import logodds
 from sogm_service.core.geodesy import LocalTangentPlane
+from sogm_service.core.sevds.supercells import FREE, node_evidence
 from sogm_service.service.config import ZenohSettings
 from sogm_service.wire.errors import ClientError
 from sogm_service.wire.messages import PoseMessage, TileEvent
@@ -417,12 +418,12 @@ class MapHub:
             return {"type": "supercells", "nodes": [], "edges": [], "error": str(exc)}
         order = {name: k for k, name in enumerate(info.layers)}
         nodes, edges = [], []
-        for n in reply.nodes:
-            best = int(np.argmax(n.mean_probability)) if n.mean_probability else -1
-            cls = order.get(reply.layers[best], -1) \
-                if best >= 0 and n.mean_probability[best] > 0.51 else -1
+        evidence = node_evidence(np.array([n.mean_probability for n in reply.nodes],
+                                          dtype=np.float64).reshape(len(reply.nodes), -1))
+        for n, e in zip(reply.nodes, evidence.tolist(), strict=True):
+            cls = order.get(reply.layers[e], -1) if e >= 0 else -1
             nodes.append({"id": n.id, "x": round(n.x, 4), "y": round(n.y, 4),
-                          "area_m2": round(n.area_m2, 4), "cls": cls})
+                          "area_m2": round(n.area_m2, 4), "cls": cls, "free": e == FREE})
             edges += [[n.id, m] for m in n.neighbors if n.id < m]
         return {"type": "supercells", "nodes": nodes, "edges": edges,
                 "box": [xmin, ymin, xmax, ymax], "resolution": res, "error": None}

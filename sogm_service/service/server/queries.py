@@ -186,8 +186,9 @@ def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry,
                stamp: float) -> SupercellReply:
     """The ``supercells`` queryable: SEVDS (Eq. 7-10) on the window, as a topometric graph.
 
-    Each node is the paper's triple (T_c, L_c, P_c): centroid in the map frame, adjacent
-    supercells, and the Eq. 11 feature vector (summed log-odds per layer, plus mean P).
+    Each node is the paper's triple (T_c, L_c, P_c): its place in the map frame (the supercell's
+    cell nearest its centroid, so inside it), adjacent supercells, and the Eq. 11 feature vector
+    (summed log-odds per layer, plus mean P).
     """
     from sogm_service.core.sevds.segment import (
         SevdsParams,  # numba: imported on first use, not at start
@@ -202,7 +203,7 @@ def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry,
         neighbours[a].append(b)
         neighbours[b].append(a)
     cell_area = window.resolution ** 2
-    nodes = [SupercellNode(id=k, x=float(graph.centroids[k, 0]), y=float(graph.centroids[k, 1]),
+    nodes = [SupercellNode(id=k, x=float(graph.positions[k, 0]), y=float(graph.positions[k, 1]),
                            area_cells=int(graph.areas[k]),
                            area_m2=float(graph.areas[k]) * cell_area, neighbors=neighbours[k],
                            logodds_sum=graph.logodds_sum[k].tolist(),

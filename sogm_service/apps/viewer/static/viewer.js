@@ -582,7 +582,9 @@
     const pal = palette();
     for (const n of sc.nodes) {
       const [sx, sy] = pos.get(n.id);
-      ctx.fillStyle = n.cls >= 0 && n.cls < pal.length ? pal[n.cls] : "#9e9e9e";
+      // A node's evidence: its occupied layer's colour, orange when observed free, else grey.
+      ctx.fillStyle = n.cls >= 0 && n.cls < pal.length ? pal[n.cls]
+        : (n.free ? "#ff8c00" : "#9e9e9e");
       ctx.strokeStyle = "#000";
       ctx.beginPath();
       ctx.arc(sx, sy, 3.5, 0, 2 * Math.PI);
