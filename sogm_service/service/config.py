@@ -281,6 +281,25 @@ class Ros2Settings(_Section):
         gt=0)] = 0.01
 
 
+class Nav2Settings(_Section):
+    """nav2 costmap filter masks derived live from the semantic layers, published with --ros2
+    over the map's region and period (:mod:`sogm_service.adapters.ros2.filters`)."""
+
+    keepout: Annotated[list[Annotated[str, Field(min_length=1, max_length=256)]], _doc(
+        "Layers or class patterns kept out of: <topic_root>/<map>/keepout_mask is 100 where "
+        "one is at or above keepout_threshold; empty: no keepout mask.", "",
+        ["*/person"])] = []
+    keepout_threshold: Annotated[float, _doc(
+        "Probability at or above which a cell is kept out.", "", gt=0.5, lt=1)] = 0.6
+    speed: Annotated[dict[Annotated[str, Field(min_length=1, max_length=256)],
+                          Annotated[int, Field(ge=1, le=100)]], _doc(
+        "Layers or class patterns -> speed limit in percent of the maximum speed (1..100) on "
+        "<topic_root>/<map>/speed_mask; where several apply the lowest wins; empty: no speed "
+        "mask.", "%", {"*/pallet": 40})] = {}
+    speed_threshold: Annotated[float, _doc(
+        "Probability at or above which a speed class limits a cell.", "", gt=0.5, lt=1)] = 0.6
+
+
 class ClusterSettings(_Section):
     """One map over several servers (:mod:`sogm_service.service.cluster.cluster`)."""
 
@@ -330,6 +349,7 @@ class ServiceConfig(_Section):
     limits: LimitSettings = LimitSettings()
     zenoh: ZenohSettings = ZenohSettings()
     ros2: Ros2Settings = Ros2Settings()
+    nav2: Nav2Settings = Nav2Settings()
     cluster: ClusterSettings = ClusterSettings()
     log_level: Annotated[Literal["debug", "info", "warning", "error"], _doc(
         "The log level.")] = "info"

@@ -35,6 +35,7 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 GET_MAP = "nav_msgs/srv/GetMap"
 OCCUPANCY_GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
+COSTMAP_FILTER_INFO = "nav2_msgs/msg/CostmapFilterInfo"
 
 TYPE_HASHES: dict[str, str] = {
     OCCUPANCY_GRID: "RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7",
@@ -45,6 +46,8 @@ TYPE_HASHES: dict[str, str] = {
     GET_MAP: "RIHS01_c8ae77c9995b3554b5ba80e4d4d443f970ac65143102a1d893ec24fc07b31147",
     OCCUPANCY_GRID_UPDATE:
         "RIHS01_c4095b0be2e4363f8978a1570e0293ee093436f1e1c61d99b48502ac317025e8",
+    COSTMAP_FILTER_INFO:
+        "RIHS01_61ce391bf7690f76a331c01c9d5ce8ca71e6c99273b9fb75e48380f05c6dfdc8",
 }
 """REP-2011 type hashes (identical in Jazzy, Kilted and Rolling for these types)."""
 

@@ -23,10 +23,12 @@ from sogm_service.core.map.tiles import TiledMap
 
 @dataclass(frozen=True)
 class MapSnapshot:
-    """One publication: each layer's grid and the fused grid (None without layers)."""
+    """One publication: each layer's grid, the fused grid (None without layers) and nav2's
+    filter masks by name (``keepout``, ``speed``: :mod:`sogm_service.adapters.ros2.filters`)."""
 
     layers: dict[str, OccupancyGridFields] = field(default_factory=dict)
     fused: OccupancyGridFields | None = None
+    masks: dict[str, OccupancyGridFields] = field(default_factory=dict)
 
 
 def _classes(entries: Sequence[str] | None, names: list[str]) -> list[LayerClass]:

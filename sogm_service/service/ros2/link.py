@@ -5,7 +5,8 @@ liveliness tokens); this part wires it to the server: an ``OccupancyGrid`` ISM g
 same ingestion queue as a native one (and from there through the same pipeline, limits,
 counters and rejection reasons), poses drive the fleet tracker, and a thread republishes the
 map every ``publish_period_s`` over a stable extent (the bridge sends only what changed: whole
-grids or ``OccupancyGridUpdate`` rectangles).  Imported only when
+grids or ``OccupancyGridUpdate`` rectangles), with nav2's filter masks of ``[nav2]`` over the
+same extent.  Imported only when
 enabled: the ``ros2`` extra (rosbags, xxhash) is needed then and only then.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 import zenoh
@@ -27,6 +29,7 @@ from sogm_service.adapters.ros2.extent import (
     shrink_about_centre,
     stable_extent,
 )
+from sogm_service.adapters.ros2.filters import FilterSpec, filter_masks
 from sogm_service.adapters.ros2.views import MapSnapshot, map_snapshot
 from sogm_service.core.geometry import GridGeometry
 from sogm_service.core.map.tiles import TiledMap
@@ -40,6 +43,13 @@ from sogm_service.service.server.stats import Rejections, Stats
 from sogm_service.wire.messages import IsmMessage
 
 log = logging.getLogger(__name__)
+
+
+def filter_spec(config: ServiceConfig) -> FilterSpec:
+    """nav2's filter masks of ``[nav2]``."""
+    n = config.nav2
+    return FilterSpec(keepout=tuple(n.keepout), keepout_threshold=n.keepout_threshold,
+                      speed=dict(n.speed), speed_threshold=n.speed_threshold)
 
 
 def bridge_settings(config: ServiceConfig) -> Ros2BridgeSettings:
@@ -69,6 +79,7 @@ class Ros2Link:
         self._stop = threading.Event()
         self.extent: GridGeometry | None = None  # the published extent: it only grows
         self._changes = RegionTracker()
+        self.filters = filter_spec(config)
         self.bridge = Ros2Bridge(session, map_name=config.map.name,
                                  settings=bridge_settings(config), on_ism=self._on_ism,
                                  on_pose=self._on_pose, on_reject=self._on_reject,
@@ -108,9 +119,15 @@ class Ros2Link:
         if self.extent is None:
             return MapSnapshot()
         r = self.config.ros2
-        return map_snapshot(self.tiled, self.extent, stamp=time.time(), layers=r.layers,
+        now = time.time()
+        snap = map_snapshot(self.tiled, self.extent, stamp=now, layers=r.layers,
                             fused_layers=r.fused_layers, method=r.fused_method,
                             publish_layers=r.publish_layers)
+        if not self.filters.enabled:
+            return snap
+        # nav2's filter masks over the same extent (:mod:`...adapters.ros2.filters`)
+        return replace(snap, masks=filter_masks(self.tiled, self.extent, self.filters,
+                                                stamp=now))
 
     def _region(self) -> GridGeometry | None:
         """What the published extent must hold now (``[ros2] region``); None: nothing new."""

@@ -31,7 +31,10 @@ from sogm_service.adapters.ros2.attachment import (
 )
 from sogm_service.adapters.ros2.cdr import GridUpdateFields, OccupancyGridFields
 from sogm_service.adapters.ros2.errors import Ros2DecodeError
+from sogm_service.adapters.ros2.filterinfo import FilterInfoFields, encode_filter_info
+from sogm_service.adapters.ros2.filters import FILTER_BASE, FILTER_MULTIPLIER, FILTER_TYPES
 from sogm_service.adapters.ros2.keys import (
+    COSTMAP_FILTER_INFO,
     OCCUPANCY_GRID,
     OCCUPANCY_GRID_UPDATE,
     QOS_LATCHED,
@@ -68,6 +71,13 @@ class MapsOut(BridgeState):
     # -- maps out -------------------------------------------------------------------------
     def layer_topic(self, layer: str) -> str:
         return f"{self.base_topic}/layers/{ros_safe_name(layer)}"
+
+    def mask_topic(self, mask: str) -> str:
+        """nav2's filter mask ``mask`` (``keepout``, ``speed``): ``<base>/<mask>_mask``."""
+        return f"{self.base_topic}/{mask}_mask"
+
+    def filter_info_topic(self, mask: str) -> str:
+        return f"{self.base_topic}/{mask}_filter_info"
 
     def _publisher(self, topic: str, ros_type: str = OCCUPANCY_GRID) -> Publisher:
         slot = topic if ros_type == OCCUPANCY_GRID else f"{topic} {ros_type}"
@@ -150,7 +160,25 @@ class MapsOut(BridgeState):
             with self._lock:
                 self._last_fused = snap.fused
             sent += self.publish_grid(self.map_topic, snap.fused)
+        for mask, grid in snap.masks.items():
+            self.publish_filter_info(self.filter_info_topic(mask), FilterInfoFields(
+                grid.frame, grid.stamp, FILTER_TYPES[mask], self.mask_topic(mask),
+                FILTER_BASE, FILTER_MULTIPLIER))
+            sent += self.publish_grid(self.mask_topic(mask), grid)
         return sent
+
+    def publish_filter_info(self, topic: str, info: FilterInfoFields) -> bool:
+        """Publish a CostmapFilterInfo (latched) unless the last one sent on ``topic`` holds
+        the same; True when sent."""
+        with self._lock:
+            if self._closed:
+                return False
+            pub = self._publisher(topic, COSTMAP_FILTER_INFO)
+            if info.same_content(self._filter_infos.get(topic)):
+                return False
+            self._put(pub, encode_filter_info(info), "filter_infos_published")
+            self._filter_infos[topic] = info
+        return True
 
     # -- GetMap ---------------------------------------------------------------------------
     def _on_get_map(self, q: zenoh.Query) -> None:

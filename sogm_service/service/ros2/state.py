@@ -17,6 +17,7 @@ import zenoh
 from sogm_service.adapters.ros2.cdr import OccupancyGridFields
 from sogm_service.adapters.ros2.convert import TfTree
 from sogm_service.adapters.ros2.errors import Ros2DecodeError
+from sogm_service.adapters.ros2.filterinfo import FilterInfoFields
 from sogm_service.adapters.ros2.keys import (
     OCCUPANCY_GRID,
     ODOMETRY,
@@ -90,6 +91,7 @@ class BridgeState:
         self._declared: list[Any] = []
         self._tokens: dict[str, Any] = {}
         self._last_fused: OccupancyGridFields | None = None
+        self._filter_infos: dict[str, FilterInfoFields] = {}  # the last sent, per topic
         self._closed = False
         root = "/" + strip_name(s.topic_root) if strip_name(s.topic_root) else ""
         self.base_topic = f"{root}/{ros_safe_name(map_name)}"
