@@ -168,6 +168,16 @@ def supercell_input(tiled: TiledMap, req: SupercellRequest,
                     ) -> tuple[GridGeometry, list[LayerClass], npt.NDArray[np.int16]]:
     """The window, its classes and their log-odds: all the ``supercells`` query needs from the
     map (the server holds its map lock only for this part, not for SEVDS)."""
+    classes = price_supercells(tiled, req, admission)
+    window, stack = sample_classes(tiled, req, classes, None)  # priced just above
+    return window, classes, stack
+
+
+def price_supercells(tiled: TiledMap, req: SupercellRequest,
+                     admission: Admission | None = None) -> list[LayerClass]:
+    """The classes of a ``supercells`` query, its window priced and checked against one block:
+    arithmetic on the request and the layer names only, so the server refuses a bad query
+    before it waits for the kernels or a heavy slot."""
     classes = resolve_layers(tiled, req.layers)
     if not classes:
         raise QueryError("unknown_layer", "the map has no layers yet", "layers")
@@ -177,8 +187,7 @@ def supercell_input(tiled: TiledMap, req: SupercellRequest,
         raise QueryError("bad_parameter", f"the window ({geometry.width}x{geometry.height} "
                                           f"cells) is smaller than one block "
                                           f"({req.block_size})", "block_size")
-    window, stack = sample_classes(tiled, req, classes, None)  # priced just above
-    return window, classes, stack
+    return classes
 
 
 def supercells(tiled: TiledMap, req: SupercellRequest, window: GridGeometry,

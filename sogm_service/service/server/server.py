@@ -314,6 +314,7 @@ class MapServer:
     def _on_supercells(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(SupercellRequest, *self.params(q))
         self.wait_warm(WARMUP_WAIT_S)
+        queries.price_supercells(self.query_map(), req, self.pipeline.admission)  # refuse first
         with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
             window, layers, stack = queries.supercell_input(
                 self.query_map(), req, admission=self.pipeline.admission)
