@@ -151,3 +151,23 @@ def test_cli_drop_and_a_refused_key(tmp_path: Path) -> None:
                        for layers in stored_layers(tmp_path).values())
     finally:
         assert server.terminate() == 0
+
+
+def test_a_cluster_member_refuses_to_drop(tmp_path: Path) -> None:
+    cluster = {"map": {"resolution": RES, "tile_size": T},
+               "cluster": {"enabled": True, "replicas": 1, "fetch_cache_s": 0.0}}
+    server = start_server(tmp_path, cluster)
+    try:
+        with MapClient.connect(server.endpoint, timeout=10.0) as client:
+            publish_fleet(client)
+            wait_processed(client, 3)
+            before = robot1_map(client)
+            with pytest.raises(ServiceError) as refused:
+                client.drop_layers("robot2/*")
+            assert refused.value.code == "cluster_unsupported"
+            assert client.stats().counters.get("query_errors_cluster_unsupported") == 1
+            assert sorted(client.info().layers) == sorted(ROBOT1 + ROBOT2)
+            assert np.array_equal(robot1_map(client), before)
+            assert server.log().count("layer drop refused (cluster_unsupported)") == 1
+    finally:
+        assert server.terminate() == 0

@@ -3,6 +3,10 @@ left empty, retired layer indices, and tiles loaded back while a drop runs."""
 
 from __future__ import annotations
 
+import sys
+import threading
+import time
+
 import numpy as np
 
 from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
@@ -73,3 +77,37 @@ def test_tiles_loaded_during_a_drop_leave_the_layers_out_and_come_back_dirty() -
     again = m.get_tile((1, 0))
     assert again is not None and not again.dirty and sorted(m.layers) == [
         "robot1/laser", "robot2/laser"]
+
+
+def test_drops_racing_fuses_leave_no_orphan_planes_and_robot1_intact() -> None:
+    """robot2's ISMs fused on another thread while its layer is dropped again and again: every
+    plane a tile keeps belongs to a live layer, the byte count stays exact, robot1 unchanged."""
+    m = fused_map()
+    before = window(m, ["robot1/laser"])
+    inc = np.full((T, 64 * T), 300, np.int16)  # 64 tiles: a long second phase to land in
+    geometry = GridGeometry(RES, 64 * T, T, Pose2D(T * RES, 0.0, 0.0))
+    stop = threading.Event()
+
+    def fuse_robot2() -> None:
+        while not stop.is_set():
+            m.fuse("robot2/laser", inc, geometry, "nearest")
+
+    worker = threading.Thread(target=fuse_robot2)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # threads switch often: drops land inside fuses
+    worker.start()
+    try:
+        for _ in range(50):
+            m.drop_layers(["robot2/laser"])
+            deadline = time.monotonic() + 5.0
+            while "robot2/laser" not in m.layers and time.monotonic() < deadline:
+                time.sleep(0.0005)  # the fuses start the layer again
+    finally:
+        stop.set()
+        worker.join(10)
+        sys.setswitchinterval(interval)
+    names = m._names
+    assert all(names[lid] is not None for t in m.tiles.values() for lid in t.planes)
+    assert m.resident_bytes() == sum(t.nbytes for t in m.tiles.values())
+    assert np.array_equal(window(m, ["robot1/laser"]), before)
+    assert len(names) == 1 + 51  # robot1's, then robot2's started again 50 times
