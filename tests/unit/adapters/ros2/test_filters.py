@@ -9,6 +9,7 @@ elsewhere.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -113,7 +114,7 @@ def test_filter_info_round_trips_and_reads_as_rosbags_reads_the_definition() -> 
     assert TYPE_HASHES[INFO] == ts.hash_rihs01(INFO)
     info = FilterInfoFields("map", 12.5, 1, "/sogm/m/speed_mask", 0.0, 1.0)
     raw = encode_filter_info(info)
-    m = ts.deserialize_cdr(raw, INFO)
+    m: Any = ts.deserialize_cdr(raw, INFO)
     assert (m.type, m.filter_mask_topic, m.base, m.multiplier, m.header.frame_id) == \
         (1, "/sogm/m/speed_mask", 0.0, 1.0, "map")
     assert (m.header.stamp.sec, m.header.stamp.nanosec) == (12, 500_000_000)
