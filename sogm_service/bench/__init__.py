@@ -45,6 +45,16 @@ def registry() -> list[Benchmark]:
 
         return mixed_fleet(quick)
 
+    def per_robot(quick: bool) -> Row:
+        from sogm_service.bench.fleet import mixed_fleet_per_robot
+
+        return mixed_fleet_per_robot(quick)
+
+    def flooded(quick: bool) -> Row:
+        from sogm_service.bench.flood import flood
+
+        return flood(quick)
+
     def clustered(quick: bool) -> Row:
         from sogm_service.bench.cluster import cluster
 
@@ -76,6 +86,10 @@ def registry() -> list[Benchmark]:
                   z("ingestion")),  # type: ignore[arg-type]
         Benchmark("mixed_fleet", "sub-map p50/p99 while a fleet streams ISMs vs idle",
                   mixed),
+        Benchmark("mixed_fleet_per_robot", "the same with every robot its own 4 layers "
+                  "(32 layers) vs idle", per_robot),
+        Benchmark("flood", "sub-map p99 while 2 publishers offer >= 2x capacity vs idle",
+                  flooded),
         Benchmark("cluster", "ingestion with 2 cluster members vs 1 (replicas 1)",
                   clustered),
         Benchmark("cluster_split", "bytes per ISM: every member gets it whole vs a split "

@@ -9,9 +9,13 @@ signal handlers before opening it, and closes it on SIGTERM or end of stdin.
   every ``--count`` samples (the raw baseline of the ingestion benchmark).
 * ``publisher``: for every ``go`` line on stdin puts the ``--count`` ISM payloads (prepared
   before timing, congestion control BLOCK) and prints ``sent <t_first> <t_last>``.
+* ``flood``: for every ``SECONDS`` line on stdin puts ISMs as fast as the link takes them
+  (``--robots`` keys in turn, BLOCK) for that long and prints ``sent <count> <t_first>
+  <t_last>``.
 * ``paced``: a fleet at a steady rate: for every ``RATE SECONDS`` line on stdin puts ISMs at
   ``RATE`` per second for ``SECONDS`` (``--robots`` x 4 keys in turn, BLOCK) and prints
-  ``sent <count> <t_first> <t_last>``.
+  ``sent <count> <t_first> <t_last>``; ``--layers`` names the layers every robot writes,
+  ``--per-robot`` gives each robot its own (``ism/robot<r>/layer<l>``).
 """
 
 from __future__ import annotations
@@ -128,10 +132,12 @@ def run_publisher(args: argparse.Namespace, stop: threading.Event) -> None:
 def run_paced(args: argparse.Namespace, stop: threading.Event) -> None:
     # The fleet writes the layers the bench's client reads (--layers): the contention a query
     # meets when robots map what it asks for; without, each key is its own layer.
+    # --per-robot: every robot its own layers, named by the key (ism/robot<r>/layer<l>).
     payloads = ism_payloads(64, args.size, layers=args.layers.split(",") if args.layers else None)
     # Under access control one identity puts under its own name only: ism/<owner>/robot<r>/...
-    keys = [f"ism/{args.owner}/robot{r}/class{c}" if args.owner else
-            f"ism/robot{r}/sensor/class{c}" for r in range(args.robots) for c in range(4)]
+    leaf = "layer" if args.per_robot else "sensor/class"
+    keys = [f"ism/{args.owner}/robot{r}/{leaf}{c}" if args.owner else
+            f"ism/robot{r}/{leaf}{c}" for r in range(args.robots) for c in range(4)]
     session = open_session(_transport(args).client(args.connect))
     try:
         pubs = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -148,6 +154,33 @@ def run_paced(args: argparse.Namespace, stop: threading.Event) -> None:
                 if delay > 0:
                     time.sleep(delay)
                 pubs[k % len(pubs)].put(payloads[k % len(payloads)])
+            _say(f"sent {n} {t0:.6f} {time.time():.6f}")
+        for pub in pubs:
+            pub.undeclare()
+    finally:
+        session.close()
+
+
+def run_flood(args: argparse.Namespace, stop: threading.Event) -> None:
+    """Every ``SECONDS`` line on stdin: put ISMs as fast as the link takes them (BLOCK) for
+    that long, ``--robots`` keys in turn, then print ``sent <count> <t_first> <t_last>``."""
+    layers = args.layers.split(",") if args.layers else None
+    payloads = ism_payloads(64, args.size, seed=args.seed, layers=layers)
+    keys = [f"ism/{args.owner}/flood{args.seed}/robot{r}" if args.owner else
+            f"ism/flood{args.seed}/robot{r}/obstacle" for r in range(args.robots)]
+    session = open_session(_transport(args).client(args.connect))
+    try:
+        pubs = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                for k in keys]
+        _say("ready")
+        for line in sys.stdin:
+            if stop.is_set() or not line.strip():
+                break
+            t0 = time.time()
+            t_end, n = t0 + float(line), 0
+            while time.time() < t_end and not stop.is_set():
+                pubs[n % len(pubs)].put(payloads[n % len(payloads)])
+                n += 1
             _say(f"sent {n} {t0:.6f} {time.time():.6f}")
         for pub in pubs:
             pub.undeclare()
@@ -177,7 +210,16 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--size", type=int, default=256)
     pc.add_argument("--owner", default=None, help="the robot identity every key is under")
     pc.add_argument("--layers", default=None, help="comma-separated layers the ISMs name")
-    for role in (q, c, pb, pc):
+    pc.add_argument("--per-robot", action="store_true",
+                    help="keys ism/robot<r>/layer<l>: each robot writes its own 4 layers")
+    fl = sub.add_parser("flood")
+    fl.add_argument("--connect", required=True)
+    fl.add_argument("--robots", type=int, default=8)
+    fl.add_argument("--size", type=int, default=128)
+    fl.add_argument("--seed", type=int, default=0, help="this publisher's number (its keys)")
+    fl.add_argument("--owner", default=None, help="the robot identity every key is under")
+    fl.add_argument("--layers", default=None, help="comma-separated layers the ISMs name")
+    for role in (q, c, pb, pc, fl):
         role.add_argument("--zenoh-config", type=Path, default=None,
                           help="open the session from this Zenoh config (endpoints replaced)")
     return p
@@ -187,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     stop = _stop_event()  # before any session: an early SIGTERM still closes cleanly
     roles: dict[str, Any] = {"queryable": run_queryable, "counter": run_counter,
-                             "publisher": run_publisher, "paced": run_paced}
+                             "publisher": run_publisher, "paced": run_paced,
+                             "flood": run_flood}
     roles[args.role](args, stop)
     return 0
 

@@ -198,6 +198,11 @@ class LimitSettings(_Section):
         "Threads fusing ISMs, each owning whole rows of tiles; the map is the same for any "
         "number. 1 is fastest on a 2-core machine; raise it with cores to spare and measure "
         "with sogm-service bench ingest.", "threads", ge=1, le=64)] = limits.FUSE_WORKERS
+    rx_threads: Annotated[int, _doc(
+        "Zenoh receive threads of the server process. With queue_policy lossless a full ISM "
+        "queue pushes back by holding the receive thread of each publisher's link; queries "
+        "are received by the others, so keep it above the number of links that may push "
+        "back at once (an environment ZENOH_RUNTIME wins).", "threads", ge=2, le=256)] = 16
     world_extent_m: Annotated[float, _limit("limits.world_extent_m", gt=0, le=1e9)
                               ] = limits.WORLD_EXTENT_M
     max_layers: Annotated[int, _limit("limits.max_layers", gt=0)] = limits.MAX_LAYERS

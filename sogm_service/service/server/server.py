@@ -45,7 +45,7 @@ from sogm_service.service.server.checkpoints import Checkpointer
 from sogm_service.service.server.droplayers import LayerDrop
 from sogm_service.service.server.fleet import FleetTracker
 from sogm_service.service.server.fusers import FuseWorkers
-from sogm_service.service.server.ingest import IngestQueue, IngestWorker
+from sogm_service.service.server.ingest import IngestQueue, IngestWorker, reserve_rx_threads
 from sogm_service.service.server.matcher import Matcher
 from sogm_service.service.server.pipeline import IngestPipeline, IsmItem, check_robot
 from sogm_service.service.server.stats import Stats
@@ -120,7 +120,8 @@ class MapServer:
 
     def start(self) -> MapServer:
         self.tiles.attach(self.map)
-        if self._session is None:
+        if self._session is None:  # receive threads first: a push-back must not hold them all
+            reserve_rx_threads(self.config.limits.rx_threads)
             self._session = open_session(self.config.zenoh)
         self.server_id = str(self._session.info.zid())
         self.matcher.attach(self._session)
@@ -342,6 +343,7 @@ class MapServer:
             # The map's clock (the latest ISM stamp): decaying layers read as they are then.
             "map_time": self.map.now() if math.isfinite(self.map.now()) else None,
             "fuse_workers": self.fusers.workers,
+            "rx_waiting_max": self._queue.waiting_max,
             "kernels_ready": self.warmed_up.is_set(),
         }
         extra["robots"] = self.fleet.robot_count()
