@@ -1,5 +1,6 @@
-"""sogm-service tiles import: validate tile files and copy them into a store (under its lock);
-a rejected file is reported with its reason and left where it was."""
+"""sogm-service tiles import: validate tile files and copy them into a store (a directory under
+its lock, or an object store with fenced writes); a rejected file is reported with its reason
+and left where it was."""
 
 from __future__ import annotations
 
@@ -11,27 +12,32 @@ from typing import TextIO
 
 from sogm_service.apps.options import UsageError
 from sogm_service.store.directory import DirectoryStore, lock_directory
-from sogm_service.wire.errors import TileFormatError
+from sogm_service.store.protocol import TileStore
+from sogm_service.wire.errors import StoreConflictError, TileFormatError
 from sogm_service.wire.tilefile import SUFFIX, MapKey, TileHeader, tile_from_bytes
 
 
 def cmd_import(args: argparse.Namespace, out: TextIO) -> int:
-    dest: Path = args.into
-    dest.mkdir(parents=True, exist_ok=True)
-    lock_fd = lock_directory(dest)
+    into = str(args.into)
+    lock_fd = None
+    if not into.startswith("s3://"):  # an object store fences each write instead
+        Path(into).mkdir(parents=True, exist_ok=True)
+        lock_fd = lock_directory(Path(into))
     try:
-        stores: dict[MapKey, DirectoryStore] = {}
+        stores: dict[MapKey, TileStore] = {}
         counts = {"imported": 0, "skipped": 0, "rejected": 0}
         from tqdm import tqdm
 
         files = _source_files(args.sources)
         for path in tqdm(files, desc="tiles import", unit="tile", file=sys.stderr,
                          disable=None, leave=False):
-            outcome = _import_one(path, stores, dest, args.on_conflict)
+            outcome = _import_one(path, stores, into, args.on_conflict,
+                                  getattr(args, "endpoint_url", None))
             counts[outcome.split(":")[0]] += 1
             print(f"{outcome.split(':')[0]:<8} {path}{_detail(outcome)}", file=out)
     finally:
-        os.close(lock_fd)
+        if lock_fd is not None:
+            os.close(lock_fd)
     print(", ".join(f"{v} {k}" for k, v in counts.items()), file=out)
     return 1 if counts["rejected"] else 0
 
@@ -53,17 +59,19 @@ def _source_files(sources: list[Path]) -> list[Path]:
     return files
 
 
-def _import_one(path: Path, stores: dict[MapKey, DirectoryStore], dest: Path,
-                policy: str) -> str:
+def _import_one(path: Path, stores: dict[MapKey, TileStore], dest: str, policy: str,
+                endpoint_url: str | None = None) -> str:
     """One file -> ``"imported"``, ``"skipped:<why>"`` or ``"rejected:<reason>"``."""
     try:
         blob = path.read_bytes()
         header = tile_from_bytes(blob).header
-        store = _store_for(header, stores, dest)
+        store = _store_for(header, stores, dest, endpoint_url)
         existing = store.indexed().get(header.index)
         if existing is not None and not _replace(existing.header, header, policy):
             return f"skipped:tile {header.index} exists (stamp {existing.header.stamp})"
         store.write_bytes(blob)
+    except StoreConflictError as exc:
+        return f"skipped:{exc.message}"
     except (TileFormatError, OSError) as exc:
         return f"rejected:{exc.reason if isinstance(exc, TileFormatError) else exc}"
     return "imported"
@@ -73,15 +81,23 @@ def _replace(old: TileHeader, new: TileHeader, policy: str) -> bool:
     return policy == "overwrite" or (policy == "newer" and new.stamp > old.stamp)
 
 
-def _store_for(header: TileHeader, stores: dict[MapKey, DirectoryStore],
-               dest: Path) -> DirectoryStore:
+def _store_for(header: TileHeader, stores: dict[MapKey, TileStore], dest: str,
+               endpoint_url: str | None) -> TileStore:
     """The destination store of the tile's map; its frame is the one already stored, if any."""
     key = (header.map_name, header.resolution, header.tile_size)
     if key not in stores:
-        probe = DirectoryStore(dest, *key, frame=None, readonly=True)
+        from sogm_service.apps.tiletool import open_readonly
+
+        probe = open_readonly(dest, key, endpoint_url)
         frames = {info.header.frame for info in probe.index().values()}
         frame = frames.pop() if len(frames) == 1 else header.frame
-        store = DirectoryStore(dest, *key, frame=frame, lock=False)
+        store: TileStore
+        if dest.startswith("s3://"):
+            from sogm_service.store.s3 import S3Store
+
+            store = S3Store(dest, *key, frame=frame, endpoint_url=endpoint_url)
+        else:
+            store = DirectoryStore(dest, *key, frame=frame, lock=False)
         store.index()
         stores[key] = store
     return stores[key]

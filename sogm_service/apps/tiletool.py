@@ -8,10 +8,16 @@ Examples:
     sogm-service tiles export DIR --range 0 0 2 1 --out region.npy            # + region.npy.json
     sogm-service tiles export DIR --box -5 -5 20 10 --layers obstacle --out box.png
     sogm-service tiles import backup/ --into /var/lib/sogm/tiles --on-conflict newer
+    sogm-service tiles ls s3://sogm-tiles/site-a --endpoint-url http://127.0.0.1:8333
+    sogm-service tiles import backup/ --into s3://sogm-tiles/site-a
 
-ls and export only read (no lock, no quarantine): they work on a live server's store.
-import takes the store's lock, so stop the server first; every file is fully validated and a
-rejected one is reported with its reason and left where it was.  ls exits 1 when it lists a bad
+A store is a directory or an object store URL, s3://bucket/prefix (credentials and region from
+the usual AWS environment and config files; --endpoint-url for another S3 server than the
+cloud's).  ls and export only read (no lock, no quarantine): they work on a live server's
+store.  import into a directory takes the store's lock, so stop the server first; into an
+object store it writes as a server does, fenced, so it never replaces a stored tile holding an
+ISM the imported one lacks.  Every file is fully validated and a rejected one is reported with
+its reason and left where it was.  ls exits 1 when it lists a bad
 file, import when it rejected one; a refusal (no such directory, a store in use) exits 2.
 
 PNG export: one image per layer, probabilities as grey (free white, occupied black), unknown
@@ -31,7 +37,7 @@ import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, TextIO
 
 import numpy as np
@@ -50,8 +56,9 @@ from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.format import read_tile_file, read_tile_header
-from sogm_service.wire.errors import StoreLockedError, TileFormatError
-from sogm_service.wire.tilefile import SUFFIX, MapKey, StoredTile, TileHeader
+from sogm_service.store.protocol import TileStore
+from sogm_service.wire.errors import ConfigError, StoreLockedError, TileFormatError
+from sogm_service.wire.tilefile import SUFFIX, MapKey, StoredTile, TileHeader, tile_from_bytes
 
 _CELL_EPS = 1e-9
 MAX_EXPORT_CELLS = 1 << 26  # per layer: 64 M cells (8192 x 8192) keeps an export in memory
@@ -80,13 +87,13 @@ def build_parser() -> argparse.ArgumentParser:
 def _fill_parser(p: argparse.ArgumentParser) -> None:
     p.set_defaults(handler=run_tiles)
     sub = subcommands(p, "tiles_command")
-    ls = command(sub, "ls", "list the tiles of a store directory")
-    ls.add_argument("directory", type=Path, help="the store directory")
+    ls = command(sub, "ls", "list the tiles of a store")
+    ls.add_argument("directory", metavar="STORE", help=STORE_HELP)
     ls.add_argument("--verify", action="store_true",
                     help="also read every payload and check its checksum")
     _map_filter_args(ls)
     ex = command(sub, "export", "write a tile or a region to PNG or .npy")
-    ex.add_argument("directory", type=Path, help="the store directory")
+    ex.add_argument("directory", metavar="STORE", help=STORE_HELP)
     ex.add_argument("--out", type=Path, required=True,
                     help="file.png (one <stem>_<layer>.png per layer) or file.npy")
     where = ex.add_mutually_exclusive_group(required=True)
@@ -103,14 +110,20 @@ def _fill_parser(p: argparse.ArgumentParser) -> None:
     _map_filter_args(ex)
     im = command(sub, "import", "validate tile files and copy them into a store")
     im.add_argument("sources", type=Path, nargs="+", help="tile files or directories")
-    im.add_argument("--into", type=Path, required=True, metavar="DIR",
-                    help="destination store directory")
+    im.add_argument("--into", required=True, metavar="STORE",
+                    help="destination store: " + STORE_HELP)
     im.add_argument("--on-conflict", choices=["skip", "overwrite", "newer"], default="skip",
                     help="when the store has the tile already: keep it, replace it, or "
                          "replace it by a newer stamp")
+    im.add_argument("--endpoint-url", default=None, metavar="URL", help=ENDPOINT_HELP)
+
+
+STORE_HELP = "a store directory, or an object store s3://bucket/prefix"
+ENDPOINT_HELP = "the S3 endpoint of an s3:// store (default: the cloud's for the region)"
 
 
 def _map_filter_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--endpoint-url", default=None, metavar="URL", help=ENDPOINT_HELP)
     p.add_argument("--map", default=None, help="only this map (default: any)")
     p.add_argument("--resolution", type=float, default=None, metavar="M",
                    help="only this cell size in m (default: any)")
@@ -134,9 +147,15 @@ def run_tiles(args: argparse.Namespace, out: TextIO | None = None) -> int:
     handler = {"ls": cmd_ls, "export": cmd_export, "import": cmd_import}[args.tiles_command]
     try:
         return handler(args, out)
-    except (UsageError, StoreLockedError) as exc:
+    except (UsageError, StoreLockedError, ConfigError) as exc:
         words = getattr(args, "command_words", f"tiles {args.tiles_command}")
         return fail(words, str(exc))
+    except Exception as exc:
+        from sogm_service.store.s3objects import error_code
+
+        if error_code(exc) is None:  # not the object store's refusal (no such bucket, ...)
+            raise
+        return fail(getattr(args, "command_words", f"tiles {args.tiles_command}"), str(exc))
 
 
 # -- scanning -------------------------------------------------------------------------------
@@ -144,7 +163,7 @@ def run_tiles(args: argparse.Namespace, out: TextIO | None = None) -> int:
 class Entry:
     """One ``*.tile`` file of a directory: its header, or why it is unusable."""
 
-    path: Path
+    path: PurePath
     header: TileHeader | None
     size: int
     problem: str | None
@@ -155,8 +174,25 @@ class Entry:
         return None if h is None else (h.map_name, h.resolution, h.tile_size)
 
 
-def scan(directory: Path, verify: bool = False) -> list[Entry]:
-    """Read every tile header in ``directory`` (``verify``: the whole file)."""
+def is_url(store: str | Path) -> bool:
+    return str(store).startswith("s3://")
+
+
+def open_readonly(store: str, key: MapKey, endpoint_url: str | None) -> TileStore:
+    """A store of one map, opened to read only (any frame)."""
+    if is_url(store):
+        from sogm_service.store.s3 import S3Store
+
+        return S3Store(store, *key, frame=None, readonly=True, endpoint_url=endpoint_url)
+    return DirectoryStore(store, *key, frame=None, readonly=True)
+
+
+def scan(directory: str | Path, verify: bool = False,
+         endpoint_url: str | None = None) -> list[Entry]:
+    """Read every tile header in a store (``verify``: the whole file)."""
+    if is_url(directory):
+        return _scan_objects(str(directory), verify, endpoint_url)
+    directory = Path(directory)
     if not directory.is_dir():
         raise UsageError(f"{directory} is not a directory")
     entries = []
@@ -171,6 +207,36 @@ def scan(directory: Path, verify: bool = False) -> list[Entry]:
         except (TileFormatError, OSError) as exc:
             reason = exc.reason if isinstance(exc, TileFormatError) else str(exc)
             entries.append(Entry(path, None, _size(path), reason))
+    return entries
+
+
+def _scan_objects(url: str, verify: bool, endpoint_url: str | None) -> list[Entry]:
+    """Every tile object under an s3:// prefix: its header (one ranged GET), or all of it."""
+    from sogm_service.store.s3objects import S3Location, S3Objects, s3_client
+
+    location = S3Location.parse(url)
+    objects = S3Objects(location, s3_client(endpoint_url))
+    entries = []
+    try:
+        for key, size, _ in objects.list():
+            where = location.where(key)
+            try:
+                if verify:
+                    got = objects.get(key)
+                    header = None if got is None else tile_from_bytes(got[0]).header
+                else:
+                    head = objects.header(key)
+                    header = None if head is None else head[0]
+                    if head is not None and head[1] != size:
+                        raise TileFormatError(f"object is {size} bytes, header says {head[1]}")
+                if header is not None:
+                    entries.append(Entry(where, header, size, None))
+            except TileFormatError as exc:
+                entries.append(Entry(where, None, size, exc.reason))
+    except Exception as exc:
+        if isinstance(exc, TileFormatError | ConfigError):
+            raise
+        raise UsageError(f"cannot list {url}: {exc}") from None
     return entries
 
 
@@ -192,7 +258,8 @@ def _matches(entry: Entry, args: argparse.Namespace) -> bool:
 
 # -- ls -------------------------------------------------------------------------------------
 def cmd_ls(args: argparse.Namespace, out: TextIO) -> int:
-    entries = [e for e in scan(args.directory, args.verify) if _matches(e, args)]
+    entries = [e for e in scan(args.directory, args.verify, args.endpoint_url)
+               if _matches(e, args)]
     print(f"{'map':<12} {'res':>6} {'T':>5} {'i':>6} {'j':>6} {'layers':<28} {'bytes':>9} "
           f"{'stamp (UTC)':<23} file", file=out)
     for e in entries:
@@ -232,9 +299,10 @@ class Region:
 
 
 def cmd_export(args: argparse.Namespace, out: TextIO) -> int:
-    entries = [e for e in scan(args.directory) if _matches(e, args) and e.header is not None]
+    entries = [e for e in scan(args.directory, endpoint_url=args.endpoint_url)
+               if _matches(e, args) and e.header is not None]
     key = _single_map(entries)
-    store = DirectoryStore(args.directory, *key, frame=None, readonly=True)
+    store = open_readonly(args.directory, key, args.endpoint_url)
     lattice = TileLattice(key[1], key[2])
     region = _export_region(store, lattice, args)
     if args.layers:
@@ -258,7 +326,7 @@ def _single_map(entries: list[Entry]) -> MapKey:
     return keys[0]
 
 
-def _export_region(store: DirectoryStore, lattice: TileLattice, args: argparse.Namespace) -> Region:
+def _export_region(store: TileStore, lattice: TileLattice, args: argparse.Namespace) -> Region:
     if args.tile is not None:
         i, j = args.tile
         return mosaic(store, lattice, i, j, i, j)
@@ -268,7 +336,7 @@ def _export_region(store: DirectoryStore, lattice: TileLattice, args: argparse.N
     return box_region(store, lattice, *args.box)
 
 
-def mosaic(store: DirectoryStore, lattice: TileLattice, i0: int, j0: int, i1: int,
+def mosaic(store: TileStore, lattice: TileLattice, i0: int, j0: int, i1: int,
            j1: int) -> Region:
     """Tiles ``i0..i1 x j0..j1`` side by side; missing tiles and layers stay unknown (0)."""
     t = lattice.tile_size
@@ -288,7 +356,7 @@ def mosaic(store: DirectoryStore, lattice: TileLattice, i0: int, j0: int, i1: in
     return Region(layers, data, (origin.x, origin.y), lattice.resolution)
 
 
-def _load_tiles(store: DirectoryStore, indices: list[TileIndex]) -> list[StoredTile]:
+def _load_tiles(store: TileStore, indices: list[TileIndex]) -> list[StoredTile]:
     from tqdm import tqdm
 
     tiles = []
@@ -307,7 +375,7 @@ def _union_layers(names: Iterable[tuple[str, ...]]) -> list[str]:
     return out
 
 
-def box_region(store: DirectoryStore, lattice: TileLattice, xmin: float, ymin: float, xmax: float,
+def box_region(store: TileStore, lattice: TileLattice, xmin: float, ymin: float, xmax: float,
                ymax: float) -> Region:
     """The cells meeting the metric box ``[xmin, xmax] x [ymin, ymax]``."""
     if not (xmax > xmin and ymax > ymin):

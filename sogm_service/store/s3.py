@@ -9,11 +9,12 @@ the directory store's files (:mod:`sogm_service.wire.tilefile`).
   it is still the object that was read), and reported in :attr:`S3Store.problems`.
 * **Fenced writes**: several servers may share one bucket (a cluster), so every write is
   conditional on the object as this store last saw it: ``IfMatch`` on its ETag, or
-  ``IfNoneMatch="*"`` for a tile it saw absent or never saw.  When the condition fails,
-  another server wrote the tile since; the store reads that object's header and writes over
-  it only if this copy holds every ISM the stored one holds (by their applied marks: the last
-  ISM fused per ISM key).  Otherwise the write is refused with ``StoreConflictError``: a
-  server that lost a tile (paused, partitioned) never overwrites a newer copy.
+  ``IfNoneMatch="*"`` for a tile it saw absent or never saw.  A write replaces a stored tile
+  only if this copy holds every ISM the stored one holds (by their applied marks: the last
+  ISM fused per ISM key), checked against the copy this store last saw and, when the
+  condition fails (another server wrote the tile since), against the object now stored.
+  Otherwise the write is refused with ``StoreConflictError``: a server that lost a tile
+  (paused, partitioned) never overwrites a newer copy, nor does an import.
 * **Credentials and region** come from boto3's usual chain (the ``AWS_*`` environment, the
   shared config and credentials files, instance roles); ``endpoint_url`` points it at another
   S3 server (SeaweedFS, MinIO, a cloud's regional endpoint).
@@ -22,23 +23,28 @@ the directory store's files (:mod:`sogm_service.wire.tilefile`).
 from __future__ import annotations
 
 import logging
-import re
+import math
 import threading
 import time
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
-from pathlib import PurePath, PurePosixPath
+from collections.abc import Sequence
+from pathlib import PurePath
 from typing import Any, Final
 
 from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
 from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
 from sogm_service.store.protocol import StoreProblem, TileFileInfo
-from sogm_service.wire import encodings
-from sogm_service.wire.errors import ConfigError, StoreConflictError, TileFormatError
+from sogm_service.store.s3objects import (
+    ABSENT,
+    PRECONDITION,
+    S3Location,
+    S3Objects,
+    error_code,
+    s3_client,
+)
+from sogm_service.wire.errors import StoreConflictError, TileFormatError
 from sogm_service.wire.tilefile import (
-    _PREFIX,
     DEFAULT_LEVEL,
-    SUFFIX,
+    MAX_APPLIED,
     Expectation,
     Fixed,
     StoredTile,
@@ -46,8 +52,6 @@ from sogm_service.wire.tilefile import (
     _file_stem,
     check_expectation,
     marks_of,
-    parse_header,
-    parse_prefix,
     tile_file_name,
     tile_from_bytes,
     tile_header,
@@ -56,138 +60,24 @@ from sogm_service.wire.tilefile import (
 
 log = logging.getLogger(__name__)
 
-SCHEME: Final = "s3://"
 QUARANTINE: Final = "quarantine"
-HEAD_BYTES: Final = 4096  # one ranged GET reads a tile's header (longer ones take a second)
 WRITE_ATTEMPTS: Final = 4  # a write that keeps meeting newer objects it may replace gives up
-_BUCKET = re.compile(r"[a-z0-9][a-z0-9.\-]{1,61}[a-z0-9]")
-_PRECONDITION = {"PreconditionFailed", "ConditionalRequestConflict", "412"}
-_ABSENT = {"NoSuchKey", "404", "NotFound"}
-
-
-@dataclass(frozen=True)
-class S3Location:
-    """A bucket and a key prefix (no slash at either end; empty: the bucket's root)."""
-
-    bucket: str
-    prefix: str = ""
-
-    @classmethod
-    def parse(cls, url: str) -> S3Location:
-        """``s3://bucket/prefix`` (the prefix optional); ConfigError for anything else."""
-        if not url.startswith(SCHEME):
-            raise ConfigError(f"a store URL starts with {SCHEME} (got {url!r})", "store.url")
-        bucket, _, prefix = url[len(SCHEME):].partition("/")
-        if not _BUCKET.fullmatch(bucket):
-            raise ConfigError(f"{bucket!r} is not an S3 bucket name (3-63 characters: "
-                              "lower-case letters, digits, dots and hyphens)", "store.url")
-        return cls(bucket, prefix.strip("/"))
-
-    @property
-    def url(self) -> str:
-        return f"{SCHEME}{self.bucket}/{self.prefix}" if self.prefix else f"{SCHEME}{self.bucket}"
-
-    def key(self, name: str) -> str:
-        """The object key of ``name`` under the prefix."""
-        return f"{self.prefix}/{name}" if self.prefix else name
-
-    def where(self, key: str) -> PurePath:
-        """How problems and listings name an object: ``bucket/key``."""
-        return PurePosixPath(self.bucket, key)
-
-
-def s3_client(endpoint_url: str | None = None) -> Any:
-    """A boto3 S3 client (credentials and region from boto3's usual chain)."""
-    try:
-        import boto3
-        from botocore.config import Config
-    except ImportError:  # pragma: no cover - the s3 extra is part of the test extra
-        raise ConfigError("an s3:// store needs boto3: pip install 'sogm-service[s3]'",
-                          "store.url") from None
-    config = Config(retries={"max_attempts": 5, "mode": "standard"}, connect_timeout=5,
-                    read_timeout=30, s3={"addressing_style": "path"})
-    # A session of its own: boto3's default session keeps the credentials it first found.
-    return boto3.session.Session().client("s3", endpoint_url=endpoint_url, config=config)
-
-
-def error_code(exc: BaseException) -> str | None:
-    """The S3 error code of a botocore ``ClientError`` (None for any other exception)."""
-    response = getattr(exc, "response", None)
-    if not isinstance(response, dict):
-        return None
-    return str(response.get("Error", {}).get("Code", "")) or None
-
-
-class S3Objects:
-    """The tile objects under one location: listing, reading and writing whole objects."""
-
-    def __init__(self, location: S3Location, client: Any) -> None:
-        self.location = location
-        self.client = client
-
-    def list(self, start: str = "") -> Iterator[tuple[str, int, str]]:
-        """``(key, size, etag)`` of every tile object directly under the prefix whose name
-        starts with ``start`` (quarantined ones, in a sub-folder, are left out)."""
-        base = self.location.key("")
-        pages = self.client.get_paginator("list_objects_v2").paginate(
-            Bucket=self.location.bucket, Prefix=base + start)
-        for page in pages:
-            for obj in page.get("Contents", []):
-                key = str(obj["Key"])
-                if key.endswith(SUFFIX) and "/" not in key[len(base):]:
-                    yield key, int(obj["Size"]), str(obj["ETag"])
-
-    def get(self, key: str, first: int | None = None) -> tuple[bytes, str] | None:
-        """``(bytes, etag)`` of an object (only its ``first`` bytes if given), or None."""
-        extra = {} if first is None else {"Range": f"bytes=0-{first - 1}"}
-        try:
-            got = self.client.get_object(Bucket=self.location.bucket, Key=key, **extra)
-        except Exception as exc:
-            code = error_code(exc)
-            if code in _ABSENT:
-                return None
-            if code == "InvalidRange":  # an empty object
-                return b"", self.etag(key) or ""
-            raise
-        return got["Body"].read(), str(got["ETag"])
-
-    def etag(self, key: str) -> str | None:
-        try:
-            return str(self.client.head_object(Bucket=self.location.bucket, Key=key)["ETag"])
-        except Exception as exc:
-            if error_code(exc) in _ABSENT:
-                return None
-            raise
-
-    def put(self, key: str, blob: bytes, **condition: str) -> str:
-        """Store ``blob`` (``IfMatch``/``IfNoneMatch`` as given); the new object's ETag."""
-        got = self.client.put_object(Bucket=self.location.bucket, Key=key, Body=blob,
-                                     ContentType=encodings.TILE, **condition)
-        return str(got["ETag"])
-
-    def header(self, key: str) -> tuple[TileHeader, int, str] | None:
-        """``(header, size the header implies, etag)`` read with one or two ranged GETs, or
-        None when absent; TileFormatError when the object does not start like a tile."""
-        got = self.get(key, HEAD_BYTES)
-        if got is None:
-            return None
-        head, etag = got
-        _, start = parse_prefix(head[:_PREFIX.size])
-        if start > len(head):
-            more = self.get(key, start)
-            if more is None:
-                return None
-            head, etag = more
-        header, fields, start = parse_header(head[:start])
-        return header, start + int(fields["payload_len"]), etag
 
 
 def holds_all(ours: dict[str, Mark], theirs: dict[str, Mark]) -> bool:
     """Whether a copy with marks ``ours`` holds every ISM one with marks ``theirs`` holds:
-    per ISM key, the same last ISM or a later one."""
+    per ISM key, the same last ISM or a later one.  (A header keeps at most
+    :data:`MAX_APPLIED` marks, the newest: a key missing from a full set of ours and older
+    than all of them counts as held.)"""
+    oldest = min((m[0] for m in ours.values()), default=math.inf) \
+        if len(ours) >= MAX_APPLIED else -math.inf
     for key, mark in theirs.items():
         mine = ours.get(key)
-        if mine is None or (mine != mark and mine[0] <= mark[0]):
+        if mine is None:
+            if mark[0] < oldest:
+                continue
+            return False
+        if mine != mark and mine[0] <= mark[0]:
             return False
     return True
 
@@ -216,6 +106,7 @@ class S3Store:
         self._lock = threading.RLock()
         self._index: dict[TileIndex, TileFileInfo] = {}
         self._etags: dict[TileIndex, str | None] = {}  # as last seen; None: seen absent
+        self._marks: dict[TileIndex, dict[str, Mark]] = {}  # of the copy last seen
 
     @property
     def url(self) -> str:
@@ -274,6 +165,7 @@ class S3Store:
             return None
         with self._lock:
             self._etags[header.index] = etag
+            self._marks[header.index] = marks_of(header)
         return TileFileInfo(header, self.location.where(key), size)
 
     def indexed(self) -> dict[TileIndex, TileFileInfo]:
@@ -320,6 +212,7 @@ class S3Store:
             return None
         with self._lock:
             self._etags[(i, j)] = etag
+            self._marks[(i, j)] = marks_of(tile.header)
         return blob, tile
 
     # -- writing --------------------------------------------------------------------------
@@ -341,18 +234,21 @@ class S3Store:
         index, key, ours = header.index, self.key_for(header.i, header.j), marks_of(header)
         for _ in range(WRITE_ATTEMPTS):
             with self._lock:
-                seen = self._etags.get(index)
+                seen, marks = self._etags.get(index), self._marks.get(index, {})
+            if seen and not holds_all(ours, marks):
+                self._refuse(index)
             try:
                 etag = self.objects.put(key, blob, **({"IfMatch": seen} if seen
                                                       else {"IfNoneMatch": "*"}))
             except Exception as exc:
-                if error_code(exc) not in _PRECONDITION:
+                if error_code(exc) not in PRECONDITION:
                     raise
                 self._check_replaceable(index, key, ours)
                 continue
             info = TileFileInfo(header, self.location.where(key), len(blob))
             with self._lock:
                 self._etags[index] = etag
+                self._marks[index] = ours
                 self._index[index] = info
             return info
         raise StoreConflictError(f"tile {index} at {self.url} kept changing during "
@@ -369,13 +265,17 @@ class S3Store:
         else:
             etag = None if got is None else got[2]
         if got is not None and not holds_all(ours, marks_of(got[0])):
-            self.writes_fenced += 1
-            log.warning("tile %s at %s: not written, the stored copy holds ISMs this one "
-                        "lacks (another server wrote it)", index, self.url)
-            raise StoreConflictError(f"tile {index} at {self.url} holds ISMs this copy lacks "
-                                     "(another server wrote it)", index)
+            self._refuse(index)
         with self._lock:
             self._etags[index] = etag
+            self._marks[index] = {} if got is None else marks_of(got[0])
+
+    def _refuse(self, index: TileIndex) -> None:
+        self.writes_fenced += 1
+        log.warning("tile %s at %s: not written, the stored copy holds ISMs this one lacks "
+                    "(another server wrote it)", index, self.url)
+        raise StoreConflictError(f"tile {index} at {self.url} holds ISMs this copy lacks "
+                                 "(another server wrote it)", index)
 
     def remove(self, i: int, j: int) -> bool:
         """Delete tile ``(i, j)``'s object if it is still the one this store last saw; True
@@ -386,13 +286,14 @@ class S3Store:
         with self._lock:
             self._index.pop((i, j), None)
             seen = self._etags.pop((i, j), None)
+            self._marks.pop((i, j), None)
         if seen is None:
             return False
         try:
             self.objects.client.delete_object(Bucket=self.location.bucket, Key=key,
                                               IfMatch=seen)
         except Exception as exc:
-            if error_code(exc) in _PRECONDITION | _ABSENT:
+            if error_code(exc) in PRECONDITION | ABSENT:
                 return False
             raise
         return True

@@ -5,12 +5,16 @@ it.  Credentials reach boto3 through the AWS environment, as on a site."""
 
 from __future__ import annotations
 
+import io
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from sogm_service.store.s3 import S3Location, S3Store, holds_all, s3_client
+from sogm_service.store.directory import DirectoryStore
+from sogm_service.store.s3 import S3Store, holds_all
+from sogm_service.store.s3objects import S3Location, s3_client
 from sogm_service.wire.errors import ConfigError, StoreConflictError
 from sogm_service.wire.tilefile import tile_file_name
 from tests.s3server import BUCKET
@@ -161,3 +165,45 @@ def test_locations_and_marks() -> None:
     assert holds_all({"a": (1.0, 9), "b": (1.0, 1)}, {"a": (1.0, 9)})
     assert not holds_all({"a": (1.0, 8)}, {"a": (1.0, 9)})  # same stamp, another ISM
     assert not holds_all({}, {"a": (1.0, 9)})
+
+
+def _tiles(argv: list[str]) -> tuple[int, str]:
+    from sogm_service.apps.tiletool import build_parser, run_tiles
+
+    out = io.StringIO()
+    return run_tiles(build_parser().parse_args(argv), out), out.getvalue()
+
+
+def test_tiles_ls_export_and_import_on_a_url(s3env: Any, tmp_path: Path) -> None:
+    """``sogm-service tiles`` on s3://bucket/prefix: ls lists the objects and flags a bad
+    one, export mosaics them, import copies files in (fenced: a newer stored tile stays)."""
+    base = s3env.new_prefix()
+    url, ep = f"s3://{BUCKET}/{base}/site/a", ["--endpoint-url", s3env.endpoint_url]
+    with DirectoryStore(tmp_path / "backup", "lab", RES, T) as local:
+        local.write(0, 0, ["r1/laser/obstacle"], _data(1), 1.0, applied={KEY: (1.0, 1)})
+        local.write(1, 0, ["r1/laser/obstacle"], _data(2), 1.0, applied={KEY: (1.0, 1)})
+    code, text = _tiles(["import", str(tmp_path / "backup"), "--into", url, *ep])
+    assert code == 0 and "2 imported, 0 skipped, 0 rejected" in text
+    code, text = _tiles(["ls", url, *ep, "--verify"])
+    assert code == 0 and "2 tile(s), 0 bad" in text and "i+0001_j+0000.tile" in text
+    code, text = _tiles(["export", url, *ep, "--range", "0", "0", "1", "0",
+                         "--out", str(tmp_path / "region.npy")])
+    assert code == 0
+    region = np.load(tmp_path / "region.npy")
+    assert np.array_equal(region[:, :, :T], _data(1)) and np.array_equal(region[:, :, T:],
+                                                                          _data(2))
+    # A server fused ISM 2 into tile (0, 0) since: importing the old copy over it is refused.
+    live = _store(s3env, base)
+    live.index()
+    live.write(0, 0, ["r1/laser/obstacle"], _data(5), 2.0, applied={KEY: (2.0, 2)})
+    code, text = _tiles(["import", str(tmp_path / "backup"), "--into", url, *ep,
+                         "--on-conflict", "overwrite"])
+    assert code == 0 and "1 imported, 1 skipped" in text  # (1, 0) unchanged: same ISMs
+    assert "tile (0, 0)" in text and "holds ISMs this copy lacks" in text
+    got = live.load(0, 0)
+    assert got is not None and np.array_equal(got.data, _data(5))
+    s3env.client().put_object(Bucket=BUCKET, Key=_key(base, 3, 3), Body=b"junk")
+    code, text = _tiles(["ls", url, *ep])
+    assert code == 1 and "BAD" in text and "3 tile(s), 1 bad" not in text
+    code, text = _tiles(["ls", f"s3://no-such-bucket-{base}/x", *ep])
+    assert code == 2
