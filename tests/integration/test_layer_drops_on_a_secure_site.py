@@ -7,6 +7,8 @@ expression: a robot allowed ``drop/<robot>/**`` reaches the server with its own 
 never with a wildcard or a character set in the robot's chunk (``*``, ``robot$*``,
 ``robot[12]``), which would match other robots' layers.  Denied queries never reach the server
 (its ``queries_drop`` counter stays 0) and leave the map bit for bit; an operator drops any.
+Both topologies: the server listening and carrying the rules, and a router carrying them with
+the server one of its clients.
 """
 
 from __future__ import annotations
@@ -43,42 +45,56 @@ class SecureServer:
     pki: Pki
     proc: subprocess.Popen[bytes]
     log: Path
+    procs: list[subprocess.Popen[bytes]]
 
     def client(self, name: str, timeout: float = 10.0) -> MapClient:
         session = zenoh.open(zenoh.Config.from_file(str(self.pki.config(name))))
         return MapClient(session, timeout=timeout, owns_session=True)
 
 
-@pytest.fixture(scope="module")
-def secure(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SecureServer]:
-    d = tmp_path_factory.mktemp("secure-drop")
+def child(args: list[str], log: Path) -> subprocess.Popen[bytes]:
+    with open(log, "wb") as out:
+        return subprocess.Popen([sys.executable, "-m", "sogm_service", *args], stdout=out,
+                                stderr=subprocess.STDOUT,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+@pytest.fixture(scope="module", params=["direct", "router"])
+def secure(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory,
+           ) -> Iterator[SecureServer]:
+    d = tmp_path_factory.mktemp(f"secure-drop-{request.param}")
+    router = "rt" if request.param == "router" else None
     pki = init_pki(d / "pki", server_names=["srv"], robot_names=["robot1", "robot2"],
-                   viewer_names=["view"], operator_names=["ops"],
+                   viewer_names=["view"], operator_names=["ops"], router_name=router,
                    endpoint=free_tcp_endpoint().replace("tcp/", "tls/", 1))
     toml = d / "serve.toml"
     toml.write_text(f'[zenoh]\nconfig_file = "{pki.config("srv")}"\n'
                     f'[map]\nresolution = 0.5\ntile_size = 16\n'
                     f'[storage]\ndirectory = "{d / "tiles"}"\n', encoding="utf-8")
     log = d / "serve.log"
-    with open(log, "wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "sogm_service", "serve", "--config", str(toml)],
-            stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    procs: list[subprocess.Popen[bytes]] = []
     try:
+        if router:
+            procs.append(child(["router", "--zenoh-config", str(pki.config(router))],
+                               d / "router.log"))
+        proc = child(["serve", "--config", str(toml)], log)
+        procs.append(proc)
         wait_listening(pki.endpoint.replace("tls/", "tcp/", 1), 60,
-                       lambda: proc.poll() is not None, lambda: log.read_text(errors="replace"))
-        server = SecureServer(pki, proc, log)
+                       lambda: any(p.poll() is not None for p in procs),
+                       lambda: log.read_text(errors="replace"))
+        server = SecureServer(pki, proc, log, procs)
         with server.client("robot1", timeout=1.0) as probe:
             assert eventually(lambda: len(probe.servers()) == 1), log.read_text()
         yield server
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()  # our own child, by its pid
-                proc.wait(5)
+        for p in reversed(procs):  # the server first, then its router
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+                try:
+                    p.wait(15)
+                except subprocess.TimeoutExpired:
+                    p.kill()  # our own child, by its pid
+                    p.wait(5)
 
 
 def eventually(pred: Any, tries: int = 200) -> bool:
