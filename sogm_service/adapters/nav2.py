@@ -17,6 +17,10 @@ knows nothing: log-odds exactly 0).
 Reading (:func:`read_nav2`) applies map_server's rules to any image OpenCV decodes (PGM, PNG,
 BMP, ...), for the modes ``trinary``, ``scale`` and ``raw``, with ``negate`` and alpha as
 map_server does, and returns nav_msgs occupancy (0..100, -1) in grid order with its geometry.
+
+Costmap filter masks (:func:`export_mask`): the keepout mask in ``trinary`` mode (100 kept
+out, 0 free, -1 unknown), the speed mask in ``scale`` mode with ``occupied_thresh: 1.0`` and
+``free_thresh: 0.0``, so map_server reads each pixel back as its limit in percent.
 """
 
 from __future__ import annotations
@@ -142,27 +146,9 @@ def export_nav2(directory: str | Path, values: npt.ArrayLike, geometry: GridGeom
     arr = np.asarray(values)
     if arr.shape != geometry.shape:
         raise ValueError(f"values of shape {arr.shape}, geometry {geometry.shape}")
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
-    pgm, yml = out / f"{name}.pgm", out / f"{name}.yaml"
     px = trinary_pixels(arr, kind, occupied_thresh=occupied_thresh, free_thresh=free_thresh)
-    image = np.ascontiguousarray(np.flipud(px))  # image top row = largest y
-    header = f"P5\n# sogm-service export\n{geometry.width} {geometry.height}\n255\n"
-    tmp = pgm.with_suffix(".pgm.tmp")
-    tmp.write_bytes(header.encode("ascii") + image.tobytes())
-    tmp.replace(pgm)
-    o = geometry.origin
-    text = (f"image: {pgm.name}\n"
-            f"mode: trinary\n"
-            f"resolution: {_yaml_float(geometry.resolution)}\n"
-            f"origin: [{_yaml_float(o.x)}, {_yaml_float(o.y)}, {_yaml_float(o.yaw)}]\n"
-            f"negate: 0\n"
-            f"occupied_thresh: {_yaml_float(occupied_thresh)}\n"
-            f"free_thresh: {_yaml_float(free_thresh)}\n")
-    tmp = yml.with_suffix(".yaml.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(yml)
-    return yml, pgm
+    return _write_map(Path(directory), name, px, geometry, mode="trinary",
+                      occupied_thresh=occupied_thresh, free_thresh=free_thresh)
 
 
 def _number(doc: dict[str, Any], key: str, default: float | None = None) -> float:
@@ -248,3 +234,66 @@ def _occupancy(img: npt.NDArray[Any], mode: str, negate: bool, occ_t: float,
     out[occ < free_t] = 0
     out[transparent] = -1
     return out
+
+
+# -- nav2 costmap filter masks ---------------------------------------------------------------
+MASK_MODES = {"keepout": "trinary", "speed": "scale"}
+"""The map_server mode each filter mask is written in (nav2's filter tutorials use these)."""
+
+
+def mask_pixels(cells: npt.ArrayLike, mode: str) -> npt.NDArray[np.uint8]:
+    """Mask cells (0..100, -1) -> pixels in grid order that map_server reads back as them.
+
+    ``trinary`` (at thresholds 0.65 / 0.25): 100 -> 0, 0 -> 254, -1 -> 128; only those three
+    values.  ``scale`` (thresholds 1.0 / 0.0, so a cell is ``rint(occ * 100)`` with
+    ``occ = 1 - pixel / 255``): ``v -> round(255 * (1 - v / 100))``; no -1 (an opaque image has
+    no unknown in scale mode).
+    """
+    v = np.asarray(cells, dtype=np.int16)
+    if mode == "trinary":
+        if not np.isin(v, (-1, 0, 100)).all():
+            raise ValueError("a trinary mask holds only 100, 0 and -1")
+        px = np.full(v.shape, PIXEL_UNKNOWN, np.uint8)
+        px[v == 100] = PIXEL_OCCUPIED
+        px[v == 0] = PIXEL_FREE
+        return px
+    if mode == "scale":
+        if v.size and (v.min() < 0 or v.max() > 100):
+            raise ValueError("a scale mask holds values 0..100")
+        return np.rint(255.0 * (1.0 - v / 100.0)).astype(np.uint8)
+    raise ValueError(f"mode {mode!r} is not trinary or scale")
+
+
+def export_mask(directory: str | Path, cells: npt.ArrayLike, geometry: GridGeometry, *,
+                mode: str, name: str) -> tuple[Path, Path]:
+    """Write a costmap filter mask as ``<name>.yaml`` + ``<name>.pgm`` for nav2's map_server
+    (``mode`` ``trinary`` for keepout, ``scale`` for speed: :func:`mask_pixels`)."""
+    arr = np.asarray(cells)
+    if arr.shape != geometry.shape:
+        raise ValueError(f"cells of shape {arr.shape}, geometry {geometry.shape}")
+    occ_t, free_t = (OCCUPIED_THRESH, FREE_THRESH) if mode == "trinary" else (1.0, 0.0)
+    return _write_map(Path(directory), name, mask_pixels(arr, mode), geometry, mode=mode,
+                      occupied_thresh=occ_t, free_thresh=free_t)
+
+
+def _write_map(out: Path, name: str, px: npt.NDArray[np.uint8], geometry: GridGeometry, *,
+               mode: str, occupied_thresh: float, free_thresh: float) -> tuple[Path, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    pgm, yml = out / f"{name}.pgm", out / f"{name}.yaml"
+    image = np.ascontiguousarray(np.flipud(px))  # image top row = largest y
+    header = f"P5\n# sogm-service export\n{geometry.width} {geometry.height}\n255\n"
+    tmp = pgm.with_suffix(".pgm.tmp")
+    tmp.write_bytes(header.encode("ascii") + image.tobytes())
+    tmp.replace(pgm)
+    o = geometry.origin
+    text = (f"image: {pgm.name}\n"
+            f"mode: {mode}\n"
+            f"resolution: {_yaml_float(geometry.resolution)}\n"
+            f"origin: [{_yaml_float(o.x)}, {_yaml_float(o.y)}, {_yaml_float(o.yaw)}]\n"
+            f"negate: 0\n"
+            f"occupied_thresh: {_yaml_float(occupied_thresh)}\n"
+            f"free_thresh: {_yaml_float(free_thresh)}\n")
+    tmp = yml.with_suffix(".yaml.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(yml)
+    return yml, pgm

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 pytest.importorskip("rosbags")  # the [ros2] extra
 pytest.importorskip("xxhash")
@@ -31,8 +32,11 @@ from sogm_service.client import MapClient
 from sogm_service.client.session import loopback_settings, open_session
 from sogm_service.core.geometry import Pose2D
 from tests.conftest import start_server, wait_processed, wait_until
+from tests.integration.test_cli import run_cli
 from tests.integration.test_ros2_bridge import GRID_H, GRID_T, TS, tokens
 from tests.integration.test_ros2_map_updates import UPDATE_H, UPDATE_T, Holder
+from tests.unit.adapters.ros2.test_filters import map_server_scale
+from tests.unit.adapters.test_nav2 import map_server_trinary, read_pgm
 
 pytestmark = pytest.mark.integration
 
@@ -136,6 +140,27 @@ def test_keepout_follows_a_person_and_fades_and_speed_limits_a_pallet(tmp_path: 
             assert (speed.grid.info.width, speed.grid.info.height) == \
                 (g.info.width, g.info.height)  # the map's extent
             assert speed.grid.info.origin.position.x == g.info.origin.position.x
+
+            # export nav2 --keepout/--speed: the same masks as files map_server reads
+            out = tmp_path / "masks"
+            x0, y0 = g.info.origin.position.x, g.info.origin.position.y
+            run = run_cli("export", "nav2", "--out", str(out), "--connect", srv.endpoint,
+                          "--map", MAP, "--keepout", "*/person", "--speed", "*/pallet=40",
+                          "--box", str(x0), str(y0), str(x0 + g.info.width * RES),
+                          str(y0 + g.info.height * RES))
+            assert run.returncode == 0, run.stderr
+            for mask, holder in (("keepout", keep), ("speed", speed)):
+                doc = yaml.safe_load((out / f"{mask}_mask.yaml").read_text())
+                px = np.flipud(read_pgm(out / doc["image"]))
+                if mask == "keepout":
+                    assert doc["mode"] == "trinary"
+                    cells = map_server_trinary(px, doc["occupied_thresh"], doc["free_thresh"],
+                                               doc["negate"])
+                else:
+                    assert doc["mode"] == "scale"
+                    cells = map_server_scale(px, doc["occupied_thresh"], doc["free_thresh"])
+                assert doc["origin"][:2] == pytest.approx([x0, y0])
+                assert np.array_equal(cells, holder.cells()), mask
 
             # filter info: latched, what nav2's filters read, and exactly once per topic
             assert wait_until(lambda: keep_info.all() and speed_info.all(), TIMEOUT)

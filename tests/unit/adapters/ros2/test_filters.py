@@ -122,3 +122,39 @@ def test_filter_info_round_trips_and_reads_as_rosbags_reads_the_definition() -> 
     assert info.same_content(FilterInfoFields("map", 99.0, 1, "/sogm/m/speed_mask", 0.0, 1.0))
     assert not info.same_content(FilterInfoFields("map", 12.5, 0, "/sogm/m/speed_mask",
                                                   0.0, 1.0))
+
+
+def map_server_scale(px: np.ndarray, occupied: float, free: float) -> np.ndarray:
+    """nav2 map_server's scale rule for an opaque grey image (negate 0), written out."""
+    occ = 1.0 - px / 255.0
+    out = np.rint((occ - free) / (occupied - free) * 100.0).astype(np.int16)
+    out[occ > occupied] = 100
+    out[occ < free] = 0
+    return out.astype(np.int8)
+
+
+def test_masks_written_as_nav2_map_files_read_back_as_map_server_reads_them(
+        tmp_path: Any) -> None:
+    import yaml
+
+    from sogm_service.adapters.nav2 import MASK_MODES, export_mask, read_nav2
+    from tests.unit.adapters.test_nav2 import map_server_trinary, read_pgm
+
+    geom = GridGeometry(0.05, 5, 2, Pose2D(-1.0, 2.0, 0.0))
+    keep = np.array([[100, 0, -1, 100, 0], [-1, -1, 0, 100, 100]], np.int8)
+    speed = np.array([[0, 40, 1, 99, 100], [7, 13, 0, 55, 33]], np.int8)
+    for mask, cells in (("keepout", keep), ("speed", speed)):
+        yml, _ = export_mask(tmp_path, cells, geom, mode=MASK_MODES[mask], name=f"{mask}_mask")
+        doc = yaml.safe_load(yml.read_text())
+        assert doc["mode"] == MASK_MODES[mask] and doc["origin"] == [-1.0, 2.0, 0.0]
+        px = np.flipud(read_pgm(tmp_path / doc["image"]))  # image top row = largest y
+        if mask == "keepout":
+            got = map_server_trinary(px, doc["occupied_thresh"], doc["free_thresh"], 0)
+        else:
+            assert (doc["occupied_thresh"], doc["free_thresh"]) == (1.0, 0.0)
+            got = map_server_scale(px, doc["occupied_thresh"], doc["free_thresh"])
+        assert np.array_equal(got, cells), mask
+        assert np.array_equal(read_nav2(yml).occupancy, cells)
+    with pytest.raises(ValueError):
+        export_mask(tmp_path, np.array([[50]], np.int8), GridGeometry(0.05, 1, 1,
+                    Pose2D(0, 0, 0)), mode="trinary", name="bad")
