@@ -135,6 +135,14 @@ def test_a_robot_drops_only_its_own_layers_an_operator_any(secure: SecureServer)
         assert sorted(ops.info().layers) == layers
         assert np.array_equal(np.asarray(ops.submap(layers=layers, **WINDOW).data), before)
 
+        # The command says why nothing answered: a server is alive, the drop was denied.
+        cli = subprocess.run(
+            [sys.executable, "-m", "sogm_service", "layers", "drop", "robot2/*", "--timeout",
+             str(DENIED_WAIT), "--zenoh-config", str(secure.pki.config("robot1"))],
+            capture_output=True, text=True, timeout=60, check=False)
+        assert cli.returncode == 2 and "may not drop these layers" in cli.stderr, cli.stderr
+        assert sorted(ops.info().layers) == layers
+
         robot1.timeout = 10.0
         own = robot1.drop_layers("robot1/camera/*")
         assert own.layers == ["robot1/camera/person"] and own.stored
