@@ -4,6 +4,7 @@ or in the body) is refused with ``bad_parameter`` naming it, counted, and change
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -13,7 +14,7 @@ import pytest
 import zenoh
 
 from sogm_service.core.geometry import Pose2D
-from tests.conftest import ServerProcess, start_server, wait_processed
+from tests.conftest import ServerProcess, start_server, wait_processed, wait_until
 from tests.helpers import raw_session
 
 pytestmark = pytest.mark.integration
@@ -132,11 +133,25 @@ def test_well_typed_parameters_still_answer(session: zenoh.Session) -> None:
     assert (got["code"], got["parameter"]) == ("bad_parameter", "width")
 
 
-def test_refusals_change_nothing(session: zenoh.Session) -> None:
+def test_refusals_change_nothing_and_log_short_lines(srv: ServerProcess,
+                                                     session: zenoh.Session) -> None:
     before = _map_bytes(session)
+    time.sleep(1.1)  # past the last second's line of this code (earlier tests refused too)
+    lines_before = _refusal_lines(srv)
+    started = time.monotonic()
     for _ in range(20):
         _ask(session, "sogm/default/submap?width=1;width=2")
         _ask(session, "sogm/default/fused", REPEATED_BODY)
         _ask(session, "sogm/default/submap", msgpack.packb({"width": True, "layers": ["*"]}))
+        _ask(session, "sogm/default/submap", msgpack.packb({"layers": ["x" * 100_000]}))
+    elapsed = time.monotonic() - started
     assert _map_bytes(session) == before
     assert _counter(session, "query_errors_internal") == 0
+    assert wait_until(lambda: len(_refusal_lines(srv)) > len(lines_before), timeout=5.0)
+    new = _refusal_lines(srv)[len(lines_before):]
+    assert 1 <= len(new) <= elapsed + 2  # at most one a second per code: 80 refusals here
+    assert all(len(line) < 400 for line in new)
+
+
+def _refusal_lines(srv: ServerProcess) -> list[str]:
+    return [ln for ln in srv.log().splitlines() if "refused query [bad_parameter]" in ln]

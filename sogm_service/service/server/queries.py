@@ -8,7 +8,10 @@ code, a sentence, and the offending parameter.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import logging
+import threading
+import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -21,6 +24,7 @@ from sogm_service.core import logodds
 from sogm_service.core.classes import LayerClass
 from sogm_service.core.geometry import GridGeometry, window_geometry
 from sogm_service.core.map.tiles import TiledMap
+from sogm_service.service.server.stats import cut
 from sogm_service.wire import codec
 from sogm_service.wire import compression as zstd
 from sogm_service.wire.codec import validation_error_to_decode_error
@@ -36,6 +40,7 @@ from sogm_service.wire.queries import (
     SupercellReply,
     SupercellRequest,
     WindowRequest,
+    selector_params,
     unpack_body,
 )
 
@@ -43,6 +48,42 @@ if TYPE_CHECKING:
     from sogm_service.service.server.admission import Admission
 
 R = TypeVar("R", bound=BaseModel)  # a request model: a window, or the tiles changed
+log = logging.getLogger(__name__)
+
+
+class _RefusalLog:
+    """One short log line per refused query parameter, at most one a second per code (the
+    rest are counted, and their number said with the next line)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def __call__(self, exc: QueryError) -> QueryError:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(exc.code, -1e9) < 1.0:
+                self._suppressed[exc.code] = self._suppressed.get(exc.code, 0) + 1
+                return exc
+            more = self._suppressed.pop(exc.code, 0)
+            self._last[exc.code] = now
+        log.info("refused query [%s]: %s%s", exc.code, cut(exc.message),
+                 f" ({more} more of this code suppressed)" if more else "")
+        return exc
+
+
+_refused = _RefusalLog()
+
+
+def selector(pairs: Iterable[tuple[str, str]]) -> dict[str, str]:
+    """A query's selector parameters (:func:`~sogm_service.wire.queries.selector_params`:
+    one given twice is ``bad_parameter``, logged)."""
+    try:
+        return selector_params(pairs)
+    except QueryError as exc:
+        raise _refused(exc) from None
+
 
 
 def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = None) -> R:
@@ -55,6 +96,13 @@ def parse_request(cls: type[R], params: Mapping[str, str], body: bytes | None = 
     in the selector or in the body is refused before this (:func:`~sogm_service.wire.queries.
     selector_params`, :func:`~sogm_service.wire.queries.unpack_body`), in both here.
     """
+    try:
+        return _validate(cls, params, body)
+    except QueryError as exc:
+        raise _refused(exc) from None
+
+
+def _validate(cls: type[R], params: Mapping[str, str], body: bytes | None) -> R:
     merged: dict[str, Any] = unpack_body(body) if body else {}
     both = sorted(k for k in params if k in merged)
     if both:
@@ -98,8 +146,8 @@ def resolve_layers(tiled: TiledMap, wanted: list[str] | None) -> list[LayerClass
     try:
         return cls_.resolve(wanted, names)
     except cls_.NoMatchingLayerError as exc:
-        raise QueryError("unknown_layer", f"no layer matches {list(exc.unmatched)[:8]}; the map "
-                                          f"has {names[:32]}", "layers") from None
+        raise _refused(QueryError("unknown_layer", f"no layer matches {list(exc.unmatched)[:8]}; "
+                                  f"the map has {names[:32]}", "layers")) from None
 
 
 def sample_classes(tiled: TiledMap, req: WindowRequest, classes: list[LayerClass],

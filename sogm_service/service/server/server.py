@@ -61,7 +61,6 @@ from sogm_service.wire.queries import (
     SubmapRequest,
     SupercellRequest,
 )
-    selector_params,
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +299,7 @@ class MapServer:
     def params(q: zenoh.Query) -> tuple[dict[str, str], bytes | None]:
         body = q.payload.to_bytes() if q.payload is not None else None
         pairs: list[tuple[str, str]] = list(q.selector.parameters)  # type: ignore[call-overload]
-        return selector_params(pairs), body  # a parameter given twice: bad_parameter
+        return queries.selector(pairs), body  # a parameter given twice: bad_parameter
 
     def _on_submap(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(SubmapRequest, *self.params(q))
@@ -314,8 +313,8 @@ class MapServer:
 
     def _on_supercells(self, q: zenoh.Query) -> queries.Answer:
         req = queries.parse_request(SupercellRequest, *self.params(q))
-        self.wait_warm(WARMUP_WAIT_S)
         queries.price_supercells(self.query_map(), req, self.pipeline.admission)  # refuse first
+        self.wait_warm(WARMUP_WAIT_S)
         with self.pipeline.admission.heavy("supercells"):  # or busy, with a retry hint
             window, layers, stack = queries.supercell_input(
                 self.query_map(), req, admission=self.pipeline.admission)

@@ -31,12 +31,12 @@ from sogm_service.core.map.tiles import TiledMap
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.service.server.admission import Admission
 from sogm_service.service.server.checkpoints import Checkpointer
-from sogm_service.service.server.queries import parse_request
+from sogm_service.service.server.queries import parse_request, selector
 from sogm_service.service.server.stats import Stats
 from sogm_service.wire import encodings
 from sogm_service.wire.errors import QueryError
 from sogm_service.wire.keys import MapKeys
-from sogm_service.wire.queries import TilesChangedRequest, selector_params
+from sogm_service.wire.queries import TilesChangedRequest
 
 TILE = zenoh.Encoding(encodings.TILE)
 _BYTES_PER_HELD = 32
@@ -92,7 +92,7 @@ class TileSync:
                              "ask with accept_replies=ReplyKeyExpr.ANY", "accept_replies")
         body = q.payload.to_bytes() if q.payload is not None else None
         pairs: list[tuple[str, str]] = list(q.selector.parameters)  # type: ignore[call-overload]
-        params = selector_params(pairs)  # ``_anyke`` (Zenoh's own) left out; repeats refused
+        params = selector(pairs)  # ``_anyke`` (Zenoh's own) left out; repeats refused
         req = parse_changed(params, body, self.admission.limits.max_region_tiles)
         held = held_versions(req)
         i0, j0, i1, j1 = self.admission.check_region(req, len(held))
