@@ -17,9 +17,10 @@ Pure (numpy only, no I/O).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from fnmatch import fnmatchcase
+from fnmatch import translate
 
 import numpy as np
 import numpy.typing as npt
@@ -66,17 +67,24 @@ def resolve(requested: Sequence[str], names: Sequence[str], *,
     ordered = sorted(present)
     classes: list[LayerClass] = []
     unmatched: list[str] = []
+    seen: dict[str, tuple[str, ...]] = {}  # an entry asked twice is matched once
     for entry in requested:
-        if is_pattern(entry):
-            members = tuple(n for n in ordered if fnmatchcase(n, entry))
-        else:
-            members = (entry,) if entry in present else ()
+        members = seen.get(entry)
+        if members is None:
+            members = seen[entry] = _members(entry, ordered, present)
         if not members:
             unmatched.append(entry)
         classes.append(LayerClass(entry, members))
     if unmatched and not allow_empty:
         raise NoMatchingLayerError(unmatched, list(names))
     return classes
+
+
+def _members(entry: str, ordered: list[str], present: set[str]) -> tuple[str, ...]:
+    if not is_pattern(entry):
+        return (entry,) if entry in present else ()
+    match = re.compile(translate(entry)).match  # fnmatchcase's rule, compiled once per entry
+    return tuple(n for n in ordered if match(n))
 
 
 def member_layers(classes: Sequence[LayerClass]) -> list[str]:
