@@ -43,6 +43,7 @@ class MapState:
         # Layer index -> name, None once dropped: an index is never reused, so a fuse or read
         # that holds one while its layer is dropped never reaches another layer.
         self._names: list[str | None] = []
+        self._retired: dict[str, int] = {}  # a dropped name -> its last index (reads: unknown)
         self._dropping: frozenset[str] = frozenset()  # names a loaded tile leaves out
         self.tiles: dict[TileIndex, Tile] = {}
         self.stored: set[TileIndex] = set()
@@ -78,11 +79,16 @@ class MapState:
 
     # -- layers ---------------------------------------------------------------------------
     def layer_id(self, layer: str, create: bool = False) -> int:
-        """Index of ``layer`` in every tile's stack; ``create`` adds it when it is new."""
+        """Index of ``layer`` in every tile's stack; ``create`` adds it when it is new.  A
+        dropped layer (:meth:`drop_layers`) gives its retired index, which no tile has a plane
+        of: a read that named it just before the drop reads it as unknown."""
         idx = self._layer_index.get(layer)
         if idx is None:
             if not create:
-                raise KeyError(layer)
+                retired = self._retired.get(layer)
+                if retired is None:
+                    raise KeyError(layer)
+                return retired
             with self._struct:
                 idx = self._layer_index.get(layer)
                 if idx is None:
@@ -111,7 +117,9 @@ class MapState:
         the stored tiles one by one with :meth:`get_tile` and :meth:`evict`."""
         with self._struct:
             gone = [n for n in dict.fromkeys(names) if n in self._layer_index]
-            lids = {self._layer_index.pop(n) for n in gone}
+            retired = {n: self._layer_index.pop(n) for n in gone}
+            self._retired.update(retired)
+            lids = set(retired.values())
             for n in gone:
                 self.layers.remove(n)  # in place: views of the map share the list
             for lid in lids:

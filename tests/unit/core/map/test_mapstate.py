@@ -43,6 +43,8 @@ def test_drop_removes_planes_and_empty_tiles_and_leaves_the_rest_bit_for_bit() -
     assert m.tiles[(0, 0)].version == versions[(0, 0)]
     assert m.resident_bytes() == 2 * T * T * 2  # one plane in each of two tiles
     assert np.array_equal(window(m, ["robot1/laser"]), before)
+    # A read that named the layer just before the drop reads it as unknown (no KeyError).
+    assert not window(m, ["robot2/laser"]).any()
     snap = m.snapshot((1, 0))
     assert snap is not None and snap.layers == ["robot1/laser"]
     names, stack = m.tile_layers(m.tiles[(1, 0)])
