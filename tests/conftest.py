@@ -198,3 +198,20 @@ def seaweedfs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     server = start_seaweedfs(tmp_path_factory.mktemp("seaweedfs"))
     yield server
     server.stop()
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    """A ``sogm-service router`` on a free port on 127.0.0.1 (its endpoint), ended by its pid."""
+    endpoint = free_tcp_endpoint()
+    proc = subprocess.Popen([sys.executable, "-m", "sogm_service", "router", "--listen",
+                             endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    yield endpoint
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)

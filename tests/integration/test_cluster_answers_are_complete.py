@@ -9,11 +9,6 @@ and never answers it as unknown.
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,22 +44,6 @@ def deterministic_isms(n: int = N_ISMS, seed: int = 11) -> list[tuple[np.ndarray
         origin = Pose2D(float(rng.integers(0, 336)) * RES, float(rng.integers(0, 336)) * RES, 0.0)
         out.append((rng.integers(60, 200, size=(64, 64), dtype=np.uint8), origin))
     return out
-
-
-@pytest.fixture
-def router() -> Iterator[str]:
-    endpoint = free_tcp_endpoint()
-    proc = subprocess.Popen([sys.executable, "-m", "sogm_service", "router", "--listen",
-                             endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    yield endpoint
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 def member(tmp_path: Path, name: str, router: str, servers: int,

@@ -1,6 +1,11 @@
 """Membership changes (:meth:`Handover._transition`): the tiles a member takes over are pulled
 from a current owner and their journals replayed after the marks the copy holds; the tiles it no
-longer owns are dropped from memory and the store.
+longer owns are dropped from memory and from its own store.
+
+On a *shared* store (an object store every member writes, :attr:`TileStore.shared`) a tile no
+live member holds (every owner gone, a whole cluster restarted on its bucket) is loaded from
+the store, and its journal replayed after the stored copy's marks; a member that stops owning a
+tile drops it from memory only, since the stored object is the cluster's.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from sogm_service.core.map.rendezvous import Ownership
 from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.cluster.exchange import TileExchange
 from sogm_service.service.cluster.handover import replay_plan
+from sogm_service.wire.tilefile import marks_of
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +42,7 @@ class Handover(TileExchange):
                     del self._journal[index]
         log.info("cluster: members %s (was %s)", sorted(members), sorted(prev.members))
         held = self._held_elsewhere(settle=joining)
-        local = self.tiled.known_tiles()
+        local = self.tiled.known_tiles() | self._in_shared_store()
         candidates = {i for i in held | local | set(self._journal)
                       if view.owns(self.me, i) and not prev.owns(self.me, i)}
         pulled = 0
@@ -81,10 +87,14 @@ class Handover(TileExchange):
         """Bring ``index`` to its current state here and replay its journal; 1 if copied."""
         digest = self._local_digest(index)
         got = self._fetch_one(index, digest, self.settings.handover_timeout_s) if ask else None
+        stored = self._load_shared(index) if got is None else None
         copied = 0
         with self._gate:
             applied: dict[str, Mark] = {}
-            if got is not None:
+            if stored is not None:  # no live copy: the shared store's is the newest there is
+                applied = stored
+                self.stats.count("cluster_tiles_loaded_from_store")
+            elif got is not None:
                 applied = got.applied
                 if got.status == "tile" and got.blob is not None:
                     copied = int(self._install(index, got.blob, applied))
@@ -129,9 +139,40 @@ class Handover(TileExchange):
                     del self._skip[index]
         return dropped
 
+    def _in_shared_store(self) -> set[TileIndex]:
+        """Every tile of a shared store (listed now: other members write it too)."""
+        store = self.tiles.store
+        if store is None or not store.shared:
+            return set()
+        try:
+            return set(store.index())
+        except Exception as exc:
+            log.error("cluster: could not list the shared store: %s", exc)
+            return set()
+
+    def _load_shared(self, index: TileIndex) -> dict[str, Mark] | None:
+        """Tile ``index`` from a shared store into the map (its marks), or None when there is
+        no shared store or no such tile there."""
+        store = self.tiles.store
+        if store is None or not store.shared:
+            return None
+        try:
+            tile = store.load(*index)
+        except Exception as exc:
+            log.error("cluster: could not load tile %s from the shared store: %s", index, exc)
+            return None
+        if tile is None:
+            return None
+        h = tile.header
+        applied = marks_of(h)
+        with self._gate:
+            self.tiled.insert_tile(index, list(h.layers), tile.data, h.stamp, saved=True,
+                                   decay=dict(h.decay), applied=applied)
+        return applied
+
     def _unstore(self, index: TileIndex) -> None:
         store = self.tiles.store
-        if store is not None:
+        if store is not None and not store.shared:  # a shared store's tile is the cluster's
             try:
                 store.remove(*index)
             except OSError as exc:
