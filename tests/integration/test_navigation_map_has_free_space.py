@@ -192,7 +192,8 @@ def test_publish_ism_stamps_now_and_refuses_an_ism_its_layer_would_forget(
     # 0.0, the stamp publish-ism used to send: a 5 s half-life keeps nothing of it
     stale = run_cli(*args, "--x", "7", "--stamp", "0")
     line = one_line_error(stale)
-    assert "[stale_stamp]" in line and "half-life of 5 s" in line, line
+    assert "[stale_stamp]" in line and "(half-life 5 s)" in line, line
+    assert line.endswith("(stamps: Unix time in s)"), line  # the whole reason
     # two half-lives old: fused, at a quarter of its weight
     aged = run_cli(*args, "--x", "8", "--stamp", repr(stamp - 10.0))
     assert aged.returncode == 0, aged.stderr

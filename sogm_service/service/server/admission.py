@@ -94,10 +94,9 @@ class Admission:
         if not now - stamp > limit:  # also an empty map (now = -inf)
             return
         raise IsmRejectedError(
-            "stale_stamp", f"stamp {stamp:.17g} s is {now - stamp:.6g} s before the map's "
-            f"clock ({now:.17g} s); layer {layer[:64]!r} forgets with a half-life of "
-            f"{half_life:g} s and keeps nothing older than {limit:.6g} s (stamps are Unix "
-            "time in seconds)", "stamp")
+            "stale_stamp", f"stamp {stamp:.14g} is {now - stamp:.4g} s before the map's clock "
+            f"{now:.14g}; its layer (half-life {half_life:.4g} s) keeps nothing older than "
+            f"{limit:.4g} s (stamps: Unix time in s)", "stamp")
 
     def footprint(self, msg: IsmMessage) -> fp.Footprint:
         """The ISM's footprint from its header: ``out_of_world`` or ``too_large`` refused."""

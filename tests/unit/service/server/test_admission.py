@@ -124,14 +124,15 @@ def test_an_ism_its_forgetting_layer_would_keep_nothing_of_is_stale() -> None:
     with pytest.raises(IsmRejectedError) as err:
         admission.check_ism(_stamped(now - limit * 1.001), "r3/people", None, tiled)
     assert (err.value.code, err.value.parameter) == ("stale_stamp", "stamp")
-    assert "half-life of 10 s" in str(err.value) and "r3/people" in str(err.value)
+    assert "(half-life 10 s)" in str(err.value)
+    assert len(str(err.value)) < 200  # whole in the ack and in the log line
     assert "r3/people" not in tiled.layers  # nothing of the map was touched
     tiled.fuse("r4/people", inc, geom, "nearest", stamp=now - limit * 1.001)
     assert not tiled.sample(geom, ["r4/people"], "nearest").any()
-    # a stamp of 0 (the old default) into a layer already holding an ISM stamped now
+    # any stamp further back, however far: one short reason
     with pytest.raises(IsmRejectedError, match="keeps nothing older than") as err:
-        admission.check_ism(_stamped(0.0), "r1/people", None, tiled)
-    assert err.value.code == "stale_stamp"
+        admission.check_ism(_stamped(-1e300), "r1/people", None, tiled)
+    assert err.value.code == "stale_stamp" and len(str(err.value)) < 200
     # layers that never forget take any stamp, and so does an empty map
     admission.check_ism(_stamped(0.0), "r1/walls", None, tiled)
     empty, fresh = _forgetting(h)
