@@ -303,6 +303,11 @@ class Nav2Settings(_Section):
         "mask.", "%", {"*/pallet": 40})] = {}
     speed_threshold: Annotated[float, _doc(
         "Probability at or above which a speed class limits a cell.", "", gt=0.5, lt=1)] = 0.6
+    whole_masks: Annotated[bool, _doc(
+        "Send a mask whole at every change. nav2's KeepoutFilter and SpeedFilter read whole "
+        "grids from the mask topic only (not <topic>_updates); false: the changed rectangles "
+        "on <mask topic>_updates as for the map, which nav2's filters see only at the next "
+        "whole grid ([ros2] full_period_s).")] = True
 
 
 class ClusterSettings(_Section):

@@ -5,7 +5,9 @@ transient-local ``nav2_msgs/msg/CostmapFilterInfo``.
 
 A person seen in a layer that forgets is kept out (100), fades to 0 once its evidence is below
 the threshold and to -1 once it is gone, as the map's clock (the latest ISM stamp) moves on; a
-pallet limits the speed to 40 % and does not fade.  The ROS side is built from the message
+pallet limits the speed to 40 % and does not fade.  nav2's filters read whole grids only, so
+by default (``whole_masks``) every change is a whole grid; without it the changes go on
+``_updates`` as for the map.  The ROS side is built from the message
 definitions with rosbags (CostmapFilterInfo and OccupancyGridUpdate registered from their text,
 hashes computed by rosbags) and rmw_zenoh's wire as documented; nothing on it uses the project's
 encoders.
@@ -78,13 +80,15 @@ def cells_at(holder: Holder, x: float, y: float, w: float, h: float) -> np.ndarr
     return grid[r0:r0 + round(h / RES), c0:c0 + round(w / RES)]
 
 
-def test_keepout_follows_a_person_and_fades_and_speed_limits_a_pallet(tmp_path: Any) -> None:
+@pytest.mark.parametrize("whole_masks", [True, False], ids=["whole", "updates"])
+def test_keepout_follows_a_person_and_fades_and_speed_limits_a_pallet(
+        tmp_path: Any, whole_masks: bool) -> None:
     srv = start_server(tmp_path, {
         "map": {"name": MAP, "resolution": RES, "tile_size": 64, "forget": {"*/person": 1.0}},
         "ros2": {"enabled": True, "publish_period_s": 0.2, "region": "known",
                  "full_period_s": 0},
         "nav2": {"keepout": ["*/person"], "keepout_threshold": 0.6,
-                 "speed": {"*/pallet": 40}}})
+                 "speed": {"*/pallet": 40}, "whole_masks": whole_masks}})
     ros = open_session(loopback_settings(connect=srv.endpoint))
     keep, speed = Holder(), Holder()
     keep_info, speed_info = Infos(), Infos()
@@ -201,7 +205,10 @@ def test_keepout_follows_a_person_and_fades_and_speed_limits_a_pallet(tmp_path: 
                   f"{len(speed.fulls)} whole grids of {sum(b for _, b in speed.fulls)} bytes, "
                   f"{len(speed.updates)} updates; grid {g.info.width}x{g.info.height}; "
                   f"server counters {ros2.get('counters', ros2)}")
-            assert len(keep.fulls) == 1 and keep.misplaced == 0  # the fade went as updates
+            if whole_masks:  # what nav2's filters read: each change a whole grid, no update
+                assert len(keep.fulls) >= 3 and not keep.updates  # kept out, faded, gone
+            else:  # the fade went as updates, as for the map
+                assert len(keep.fulls) == 1 and len(keep.updates) >= 2 and keep.misplaced == 0
             assert len(keep_info.all()) == 1 and len(speed_info.all()) == 1
     finally:
         if late is not None:

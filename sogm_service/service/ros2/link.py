@@ -61,7 +61,7 @@ def bridge_settings(config: ServiceConfig) -> Ros2BridgeSettings:
         robot_frame=r.robot_frame, humble=r.humble, topic_root=r.topic_root,
         node_name=r.node_name, max_payload_bytes=config.limits.max_payload_bytes,
         max_cells=config.limits.max_ism_cells, max_tilt=r.max_tilt_rad,
-        full_period_s=r.full_period_s)
+        full_period_s=r.full_period_s, whole_masks=config.nav2.whole_masks)
 
 
 class Ros2Link:

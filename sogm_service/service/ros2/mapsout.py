@@ -111,10 +111,10 @@ class MapsOut(BridgeState):
         self._put(pub, cdr.encode_grid_update(u), "updates_published")
 
     def publish_grid(self, topic: str, grid: OccupancyGridFields, *,
-                     force: bool = False) -> bool:
+                     force: bool = False, updates: bool = True) -> bool:
         """Publish what changed of ``grid`` on ``topic``: nothing when it equals the last grid
-        sent there (unless ``force``), the whole grid or the changed rectangles on
-        ``<topic>_updates``.  True when anything was sent."""
+        sent there (unless ``force``), the whole grid or (``updates``) the changed rectangles
+        on ``<topic>_updates``.  True when anything was sent."""
         period = self.settings.full_period_s
         now = time.monotonic()
         with self._lock:
@@ -129,7 +129,8 @@ class MapsOut(BridgeState):
                 due = period > 0 and pub.updates_since_full > 0 and now - pub.full_at >= period
                 if not rects and not due:
                     return False
-                whole = due or sum(r.cells for r in rects) > MAX_UPDATE_SHARE * grid.data.size
+                whole = due or not updates or \
+                    sum(r.cells for r in rects) > MAX_UPDATE_SHARE * grid.data.size
             if whole:
                 payload = cdr.encode_occupancy_grid(grid)
                 pub.whole_bytes = len(payload)
@@ -164,7 +165,8 @@ class MapsOut(BridgeState):
             self.publish_filter_info(self.filter_info_topic(mask), FilterInfoFields(
                 grid.frame, grid.stamp, FILTER_TYPES[mask], self.mask_topic(mask),
                 FILTER_BASE, FILTER_MULTIPLIER))
-            sent += self.publish_grid(self.mask_topic(mask), grid)
+            sent += self.publish_grid(self.mask_topic(mask), grid,
+                                      updates=not self.settings.whole_masks)
         return sent
 
     def publish_filter_info(self, topic: str, info: FilterInfoFields) -> bool:
