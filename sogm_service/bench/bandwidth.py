@@ -22,9 +22,9 @@ second are per simulated second: a real robot at the demo's sensor rate.
 The ratio is now / raw (the raw run differs only in compression: its ROS 2 maps are the same
 rectangles of what changed).  The ROS 2 share compares the ROS 2 payloads with what sending
 every changed grid whole at each publication would have cost (the server's
-``whole_equivalent_bytes`` counter).  The target of the full run (60 s simulated): at most 50 MB on the
-network, every ISM fused in both runs and the same per-class IoU; ``--quick`` (10 s) only
-reports, since the whole grids a ROS 2 tool gets first weigh more in a short run.
+``whole_equivalent_bytes`` counter).  The target of the full run (60 s simulated): at most
+50 MB on the network, every ISM fused in both runs and the same per-class IoU; ``--quick``
+(10 s) only reports, since the whole grids a ROS 2 tool gets first weigh more in a short run.
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ here") over what the robot sees within ``range_m``, ``p_occ`` over a disc of ``r
 person when it is within range and in line of sight (nothing taller than ``eye_height`` in
 between).  What it sees is the line of sight at ``eye_height``, cast in ``rays`` directions:
 a detector says nothing of the far side of a wall or a shelf (and nothing outside the
-building), so the layer's known area is the one the robots could look at.  The map server gives the layer a half-life (``[map] forget``), so the person's old
-positions fade toward unknown while the latest stays.
+building), so the layer's known area is the one the robots could look at.  The map server
+gives the layer a half-life (``[map] forget``), so the person's old positions fade toward
+unknown while the latest stays.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ class PersonDetector:
         """Cells (by distance and map-frame bearing from the reported pose) within range and
         before the first obstacle at eye height in their direction (cast at the true pose)."""
         n = self.rays
-        angles = np.arange(n) * (2 * math.pi / n)  # robot frame
+        angles = np.arange(n, dtype=np.float64) * (2 * math.pi / n)  # robot frame
         reach = np.minimum(first_hit(world, step.true_pose, angles, self.range_m,
                                      self.eye_height, 0.0), self.range_m)
         rel = (bearing - step.pose.yaw) % (2 * math.pi)

@@ -14,13 +14,13 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E
 
 from sogm_service.adapters.ros2 import Ros2DecodeError, cdr, keys  # noqa: E402
 from sogm_service.adapters.ros2.cdr import OccupancyGridFields  # noqa: E402
+from sogm_service.adapters.ros2.extent import stable_extent  # noqa: E402
 from sogm_service.adapters.ros2.updates import (  # noqa: E402
     Rect,
     apply_update,
     changed_rects,
     grid_update,
 )
-from sogm_service.adapters.ros2.extent import stable_extent  # noqa: E402
 from sogm_service.core.geometry import GridGeometry, Pose2D  # noqa: E402
 
 UPDATE = "map_msgs/msg/OccupancyGridUpdate"
