@@ -101,7 +101,9 @@ def test_fused_over_two_patterns_pools_the_classes(srv: ServerProcess) -> None:
     assert bayes.classes == {LASERS: ["robot1/laser/obstacle", "robot2/laser/obstacle"],
                              "*/camera/person": ["robot1/camera/person"]}
     assert np.array_equal(bayes.data, classes[0] + classes[1])  # Eq. 6 P_B over the classes
-    assert np.array_equal(most.data, classes.max(axis=0))  # Eq. 6 P_M over the classes
+    # Eq. 6 P_M over the classes that observed a cell (a class's 0 is no opinion)
+    observed = np.where(classes != 0, classes, np.iinfo(np.int16).min).max(axis=0)
+    assert np.array_equal(most.data, np.where((classes != 0).any(axis=0), observed, 0))
     assert (bayes.data[:, EAST] == _fixed(P2)).all()  # robot2's, no person seen there
 
 
