@@ -17,6 +17,10 @@ Part of ``sogm-service eval supercells`` (:mod:`sogm_service.eval.segmentation` 
    nodes (the cell nearest each centroid, :mod:`sogm_service.core.sevds.supercells`) or bare
    centroids that lie outside their own segment.
 4. **Timing**: the mean wall time of one segmentation per map.
+5. **The Intel replay** (:func:`intel_stack`: the Intel Research Lab log's 910 scans fused at
+   5 cm into one ``obstacle`` layer, the window around every pose with 8 m of margin), no
+   labels: compactness, node evidence and the best of three wall times per variant
+   (:func:`intel_rows`).
 
 Outputs: ``rooms.csv`` (every algorithm, map and block) and the markdown of
 :func:`rooms_markdown`.
@@ -51,6 +55,8 @@ SEVDS_VARIANTS: dict[str, SevdsParams] = {
     "SEVDS (defaults)": SevdsParams(),
     "SEVDS (paper rule)": SevdsParams(criterion="distribution"),
     "SEVDS (no extent bound)": SevdsParams(extent=64.0),
+    "SEVDS (paper rule, gamma 0.01, no bound)": SevdsParams(criterion="distribution", gamma=0.01,
+                                                            extent=64.0),
 }
 
 
@@ -219,3 +225,65 @@ def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+
+
+def intel_stack() -> npt.NDArray[np.int16]:
+    """``(1, H, W)`` fixed log-odds of the Intel replay (module docstring item 5)."""
+    from sogm_service.adapters.carmen import read_carmen
+    from sogm_service.adapters.laser import laser_ism
+    from sogm_service.core import logodds
+    from sogm_service.core.geometry import GridGeometry, Pose2D, TileLattice
+    from sogm_service.core.map.tiles import TiledMap
+    from sogm_service.data import INTEL_LOG
+
+    res = 0.05
+    tiled = TiledMap("intel", "map", TileLattice(res, 256))
+    poses = []
+    for scan in read_carmen(INTEL_LOG):
+        g, p = laser_ism(scan.ranges, scan.angles, scan.pose, res, min(8.0, scan.max_range),
+                         device_max_range=scan.max_range)
+        tiled.fuse("obstacle", logodds.increments(p, logodds.Encoding.PROB_F32, tiled.eps0), g,
+                   "biodds")
+        poses.append((scan.pose.x, scan.pose.y))
+    xy = np.array(poses)
+    lo, hi = xy.min(axis=0) - 8.0, xy.max(axis=0) + 8.0
+    w, h = (int(v) for v in (hi - lo) / res)
+    window = GridGeometry(res, w, h, Pose2D(float(lo[0]), float(lo[1]), 0.0))
+    return tiled.sample(window, ["obstacle"])
+
+
+def intel_rows(stack: npt.NDArray[np.int16], blocks: Sequence[int] = ROOM_BLOCKS,
+               repeats: int = 3) -> list[dict[str, Any]]:
+    """Per SEVDS variant and block: compactness, node evidence counts, best wall time."""
+    from sogm_service.core.sevds.supercells import FREE, UNKNOWN, extract_supercells
+
+    rows: list[dict[str, Any]] = []
+    for block in blocks:
+        for name, base in SEVDS_VARIANTS.items():
+            p = replace(base, block_size=block)
+            best = np.inf
+            for _ in range(repeats):
+                t = time.perf_counter()
+                graph, _ = extract_supercells(stack, params=p)
+                best = min(best, time.perf_counter() - t)
+            ev = graph.evidence()
+            rows.append({"algorithm": name, "block": block, "superpixels": graph.count,
+                         "seconds": best, **compactness(graph.labels, block),
+                         "occupied": int(np.count_nonzero(ev >= 0)),
+                         "free": int(np.count_nonzero(ev == FREE)),
+                         "unknown": int(np.count_nonzero(ev == UNKNOWN))})
+    return rows
+
+
+def intel_markdown(rows: list[dict[str, Any]]) -> str:
+    text = ("| block | algorithm | supercells | widest (blocks) | largest (cells) | "
+            "neighbours (max) | in pieces | centroids outside | nodes outside | occupied | "
+            "free | unknown | s (best of 3) |\n"
+            "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n")
+    for r in rows:
+        text += (f"| {r['block']} | {r['algorithm']} | {r['superpixels']} | "
+                 f"{r['max_extent_blocks']:.2f} | {r['max_area']:.0f} | "
+                 f"{r['max_neighbours']:.0f} | {r['split_segments']:.0f} | "
+                 f"{r['centroids_outside']:.0f} | {r['nodes_outside']:.0f} | {r['occupied']} | "
+                 f"{r['free']} | {r['unknown']} | {r['seconds']:.3f} |\n")
+    return text

@@ -1,6 +1,7 @@
 """The paper's evaluation (section IV): SEVDS against OpenCV's superpixels on table-top SOGMs.
 
-``sogm-service eval supercells [--out DIR] [--scenes N] [--rooms N] [--seed S] [--quick]`` runs
+``sogm-service eval supercells [--out DIR] [--scenes N] [--rooms N] [--no-intel] [--seed S]
+[--quick]`` runs
 :func:`run_supercell_evaluation`:
 
 1. **Scenes.**  ``scenes`` randomised table-top rooms (:func:`sogm_service.sim.worlds.
@@ -28,7 +29,8 @@ EV (on the
    ``segmentations.png`` (paper Fig. 11: class-majority colouring on top, boundaries in red below).
 6. **Room maps** (``rooms`` of them, :mod:`sogm_service.eval.roomeval`): labelled room maps,
    SEVDS's defaults against tuned SEEDS at equal count (UE, BR, compactness, time), in
-   ``rooms.csv`` and a third table of ``results.md``.
+   ``rooms.csv`` and a third table of ``results.md``; the Intel replay's compactness, node
+   evidence and time (unless ``--no-intel``) in ``intel.csv`` and a fourth.
 
 The figures are drawn by :mod:`sogm_service.eval.figures`.
 """
@@ -56,6 +58,9 @@ from sogm_service.eval.metrics import METRICS
 from sogm_service.eval.roomeval import (
     SEEDS_GRID,
     SEEDS_QUICK,
+    intel_markdown,
+    intel_rows,
+    intel_stack,
     rooms_markdown,
     run_room_evaluation,
     run_seeds,
@@ -259,13 +264,15 @@ def run_supercell_evaluation(
     scene_factory: Callable[[int], Scene] | None = None,
     blocks: Sequence[int] | None = None,
     rooms: int = 4,
+    intel: bool = True,
 ) -> EvaluationResult:
     """Run the evaluation of section IV and write its tables and figures into ``out_dir``.
 
     ``scene_factory(seed) -> Scene`` defaults to :func:`tabletop_scene` (the simulator);
     ``blocks`` (block edges, i.e. superpixel counts) defaults to ``8, 12, ..., 32``
     (``8, 16, 32`` with ``quick``, which also shrinks the parameter grids); ``rooms`` labelled
-    room maps (:mod:`sogm_service.eval.roomeval`, 0: none) at 8- and 16-cell blocks.
+    room maps (:mod:`sogm_service.eval.roomeval`, 0: none) at 8- and 16-cell blocks; ``intel``:
+    the Intel replay's table too.
     """
     t0 = time.time()
     out = Path(out_dir)
@@ -273,7 +280,8 @@ def run_supercell_evaluation(
     make = scene_factory or tabletop_scene
     edges = tuple(blocks or (BLOCKS_QUICK if quick else BLOCKS_FULL))
     grids = parameter_grids(quick)
-    total = scenes + sum(len(g) for g in grids.values()) * len(edges) + (8 if rooms else 0)
+    total = scenes + sum(len(g) for g in grids.values()) * len(edges) + (10 if rooms else 0) \
+        + intel
     bar = _Progress(total, progress)
     scene_list = []
     for k in range(scenes):
@@ -293,6 +301,9 @@ def run_supercell_evaluation(
     room_rows = run_room_evaluation(rooms, seed, step=bar.step,
                                     seeds_grid=SEEDS_QUICK if quick else SEEDS_GRID) \
         if rooms else []
+    intel_table = intel_rows(intel_stack()) if intel else []
+    if intel:
+        bar.step("Intel replay")
     bar.close()
     files = [out / "results.csv", out / "results.md", out / "segmentations.png"]
     write_csv(files[0], rows)
@@ -302,6 +313,10 @@ def run_supercell_evaluation(
         write_rows(files[-1], room_rows)
         text += (f"\n### Room maps ({rooms}, one occupancy layer): SEVDS against tuned SEEDS at "
                  f"equal count\n\n" + rooms_markdown(room_rows))
+    if intel_table:
+        files.append(out / "intel.csv")
+        write_rows(files[-1], intel_table)
+        text += "\n### The Intel replay (5 cm, no labels)\n\n" + intel_markdown(intel_table)
     files[1].write_text(f"# SEVDS evaluation ({scenes} scenes, seed {seed})\n\n{text}")
     cv2.imwrite(str(files[2]), segmentation_figure(scene_list[-1], shown))
     files += metric_plots(rows, out)
@@ -314,6 +329,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", type=int, default=4, help="number of scenes (default 4)")
     p.add_argument("--rooms", type=int, default=4,
                    help="labelled room maps to compare SEVDS and SEEDS on (default 4, 0: none)")
+    p.add_argument("--no-intel", dest="intel", action="store_false",
+                   help="skip the Intel replay's table (its 910 scans are fused first)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first scene (default 0)")
     p.add_argument("--quick", action="store_true",
                    help="3 superpixel counts and minimal parameter grids")
@@ -326,7 +343,8 @@ def run_eval(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     result = run_supercell_evaluation(args.out, scenes=args.scenes, seed=args.seed,
-                                      quick=args.quick, progress=True, rooms=args.rooms)
+                                      quick=args.quick, progress=True, rooms=args.rooms,
+                                      intel=args.intel)
     print(result.markdown)
     print(f"wrote {len(result.files)} files to {result.out_dir} in {result.seconds:.0f} s")
     return 0

@@ -54,25 +54,26 @@ same kind; it prefers compact supercells and breaks the ties of homogeneous regi
   receiving supercell together; ``|c| D'(c)`` is the supercell's sum of squared deviations, which
   is additive over cells (plain variances of sets of different size are not).
 
-How they behave (``sogm-service eval supercells``, :mod:`sogm_service.eval.segmentation`): the
-paper's
-rule never lets a zero-variance receiver grow without the contour term (``D(c_hat) < 0`` is
-impossible), and because the loser is not judged a cell can go back and forth between two
-supercells; the sweeps simply stop after ``iterations``.  It gives the lowest intra-cluster
-variation.  The energy rule converges (every move lowers E) and follows object boundaries much
-better (boundary recall, undersegmentation, explained variation) at a higher ICV.  The
-zero-variance rule applies to both.
+How they behave (``sogm-service eval supercells``, :mod:`sogm_service.eval.segmentation` and
+:mod:`sogm_service.eval.roomeval`): the paper's rule never lets a zero-variance receiver grow
+without the contour term (``D(c_hat) < 0`` is impossible), and because the loser is not judged
+a cell can go back and forth between two supercells; the sweeps simply stop after
+``iterations``.  It gives the lowest intra-cluster variation, but on an occupancy map of rooms
+(walls and free floor, each one bin) it hardly moves off the grid: its undersegmentation error
+is 6-10x SEEDS's.  The energy rule converges (every move lowers E) and follows boundaries: on
+those maps it matches SEEDS's undersegmentation at SEEDS's boundary recall.  It is therefore
+the default, with ``gamma`` 0 (the contour term fights the one-cell pieces a thin wall needs:
+at 0.01 the error is 1.1-1.6x SEEDS's, at 0.05 2-5x) and the extent bound for compactness
+instead.  The zero-variance
+rule applies to both.
 
 Decisions where the paper is silent: the bin of ``p`` is ``floor(p * K)`` (1 goes to the last
 bin); the image border is not part of a perimeter; a block level is used only while the block
 edge halves exactly (so blocks nest and are single-label when their level runs); candidates are
 the supercells of the unit's 4-neighbours, the best one is taken; ties (change ``>= -1e-12``) do
-not move.  Speed: the whole schedule is one numba kernel (``cache=True``); 256x256 cells with 3
-layers and 1024 supercells take about 6.9 ms at the default gamma 0.01 (4.6 ms at gamma 0.1,
-fewer accepted moves) on this 2-core machine, OpenCV's SEEDS about 9.5-10.5 ms (ratio about
-0.7), see ``sogm-service bench sevds``.  About 4.2 ms of it are the four cell-level sweeps
-(~26 000 moves), 1.7 ms the block levels (unit moments included) and 0.65 ms checking,
-quantizing and the initial state.
+not move; the extent bound is checked on the receiver only (a supercell that loses a unit
+stays inside its box).  Speed: the whole schedule is one numba kernel (``cache=True``), see
+``sogm-service bench sevds`` and the timing columns of ``sogm-service eval supercells``.
 
 The numba kernels live in :mod:`sogm_service.core.sevds.kernels` and are imported on the first
 call, so this module (the parameters and their bounds) loads without numba.  Pure, no I/O.

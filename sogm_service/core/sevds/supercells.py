@@ -135,15 +135,18 @@ def node_evidence(mean_probability: npt.ArrayLike,
 
 def nearest_cells(labels: npt.ArrayLike, centroids_cell: npt.ArrayLike) -> npt.NDArray[np.int64]:
     """``(S, 2)`` u, v of each label's cell nearest its point in ``centroids_cell`` (``(S, 2)``
-    continuous u, v; cell centres on integers); ties go to the first cell in raster order."""
+    continuous u, v; cell centres on integers; every label 0..S-1 used); ties go to the first
+    cell in raster order."""
     lab = np.asarray(labels, dtype=np.int64)
     c = np.asarray(centroids_cell, dtype=np.float64)
     flat = lab.ravel()
     v, u = np.divmod(np.arange(flat.size, dtype=np.int64), lab.shape[1])
     d2 = (u - c[flat, 0]) ** 2 + (v - c[flat, 1]) ** 2
-    order = np.lexsort((d2, flat))  # by label, then distance; stable: raster order on ties
-    first = order[np.searchsorted(flat[order], np.arange(c.shape[0]))]
-    return np.stack([u[first], v[first]], axis=1)
+    dmin = np.full(c.shape[0], np.inf)
+    np.minimum.at(dmin, flat, d2)
+    near = np.flatnonzero(d2 <= dmin[flat])  # each label's nearest cells, in raster order
+    _, first = np.unique(flat[near], return_index=True)  # (a sort of those few, not of all)
+    return np.stack([u[near[first]], v[near[first]]], axis=1)
 
 
 def split_stack(stack: npt.ArrayLike, eps0: float = logodds.DEFAULT_EPS0) -> tuple[F64, F64]:

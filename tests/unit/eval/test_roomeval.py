@@ -74,3 +74,21 @@ def test_room_maps_are_labelled_by_room() -> None:
         n, _ = cv2.connectedComponents((scene.classes == k).astype(np.uint8), connectivity=4)
         assert n == 2, names[k]
     assert (room_scene(0).stack == scene.stack).all()  # seeded
+
+
+def test_intel_rows_report_compactness_evidence_and_time() -> None:
+    from sogm_service.core import logodds
+
+    p = np.full((1, 96, 96), 0.5, np.float32)
+    p[0, 8:88, 8:88] = 0.95
+    p[0, 9:87, 9:87] = 0.05
+    stack = logodds.prob_to_fixed(p)  # int16 log-odds, as the map holds them
+    rows = roomeval.intel_rows(stack, blocks=(8,), repeats=1)
+    assert [r["algorithm"] for r in rows] == list(roomeval.SEVDS_VARIANTS)
+    by = {r["algorithm"]: r for r in rows}
+    assert by["SEVDS (defaults)"]["max_extent_blocks"] <= 3.0
+    assert by["SEVDS (no extent bound)"]["max_extent_blocks"] > 3.0
+    for r in rows:
+        assert r["occupied"] + r["free"] + r["unknown"] == r["superpixels"] == 144
+        assert r["free"] > 0 and r["nodes_outside"] == 0 and r["seconds"] > 0
+    assert "| 8 | SEVDS (defaults) | 144 |" in roomeval.intel_markdown(rows)

@@ -37,7 +37,8 @@ def synthetic_scene(seed: int) -> scenes.Scene:
 def result(tmp_path_factory: pytest.TempPathFactory) -> ev.EvaluationResult:
     out = tmp_path_factory.mktemp("eval")
     return ev.run_supercell_evaluation(out, scenes=2, seed=1, quick=True, progress=False,
-                                       scene_factory=synthetic_scene, blocks=(8, 16), rooms=1)
+                                       scene_factory=synthetic_scene, blocks=(8, 16), rooms=1,
+                                       intel=False)
 
 
 def test_gt_segments_are_connected_components_per_class() -> None:
@@ -115,7 +116,7 @@ def test_cli_parser_and_main(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
     assert calls[0][1]["scenes"] == 3 and calls[0][1]["quick"] is False
     assert cli.main(["eval", "supercells", "--scenes", "0"]) == 2
     assert cli.main(["eval", "supercells", "--rooms", "-1"]) == 2
-    assert calls[0][1]["rooms"] == 4
+    assert calls[0][1]["rooms"] == 4 and calls[0][1]["intel"] is True
     with pytest.raises(SystemExit) as refused:
         cli.main(["eval", "nothing"])
     assert refused.value.code == 2
