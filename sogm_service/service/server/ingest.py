@@ -23,7 +23,8 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from sogm_service.service.server.pipeline import IsmItem
 from sogm_service.service.server.stats import Stats
@@ -33,16 +34,22 @@ log = logging.getLogger(__name__)
 RUNTIME_ENV = "ZENOH_RUNTIME"
 
 
-def reserve_rx_threads(threads: int) -> bool:
-    """Give Zenoh's receive runtime ``threads`` workers in this process (its ``ZENOH_RUNTIME``
-    environment, read when the process opens its first session); an explicit environment
-    setting wins.  True when set here."""
+@contextmanager
+def reserve_rx_threads(threads: int) -> Iterator[bool]:
+    """Open the process's first Zenoh session within this block to give Zenoh's receive
+    runtime ``threads`` workers (its ``ZENOH_RUNTIME`` environment, read once, when the
+    runtime starts); an explicit environment setting wins.  Yields True when set here; the
+    environment is left as it was afterwards, so child processes do not inherit it."""
     if RUNTIME_ENV in os.environ:
         log.info("Zenoh runtime from the environment: %s=%s", RUNTIME_ENV,
                  os.environ[RUNTIME_ENV][:200])
-        return False
+        yield False
+        return
     os.environ[RUNTIME_ENV] = f"(rx: (worker_threads: {int(threads)}))"
-    return True
+    try:
+        yield True
+    finally:
+        os.environ.pop(RUNTIME_ENV, None)
 
 
 class IngestQueue:

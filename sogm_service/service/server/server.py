@@ -120,8 +120,8 @@ class MapServer:
     def start(self) -> MapServer:
         self.tiles.attach(self.map)
         if self._session is None:  # receive threads first: a push-back must not hold them all
-            reserve_rx_threads(self.config.limits.rx_threads)
-            self._session = open_session(self.config.zenoh)
+            with reserve_rx_threads(self.config.limits.rx_threads):
+                self._session = open_session(self.config.zenoh)
         self.server_id = str(self._session.info.zid())
         self.matcher.attach(self._session)
         self._worker.start()

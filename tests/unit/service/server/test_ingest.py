@@ -53,8 +53,12 @@ def test_rx_threads_go_to_zenoh_unless_the_environment_says(
         monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(ingest.RUNTIME_ENV, "")  # restored (or removed) after the test
     monkeypatch.delenv(ingest.RUNTIME_ENV)
-    assert reserve_rx_threads(12)
-    assert os.environ[ingest.RUNTIME_ENV] == "(rx: (worker_threads: 12))"
+    with reserve_rx_threads(12) as set_here:  # the first session opens here
+        assert set_here
+        assert os.environ[ingest.RUNTIME_ENV] == "(rx: (worker_threads: 12))"
+    assert ingest.RUNTIME_ENV not in os.environ  # children do not inherit it
     monkeypatch.setenv(ingest.RUNTIME_ENV, "(rx: (worker_threads: 3))")
-    assert not reserve_rx_threads(12)
+    with reserve_rx_threads(12) as set_here:
+        assert not set_here
+        assert os.environ[ingest.RUNTIME_ENV] == "(rx: (worker_threads: 3))"
     assert os.environ[ingest.RUNTIME_ENV] == "(rx: (worker_threads: 3))"
