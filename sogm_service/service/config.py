@@ -260,8 +260,9 @@ class Ros2Settings(_Section):
         "Maps are republished this often, when they changed (s).", "s", gt=0)] = 1.0
     full_period_s: Annotated[float, _doc(
         "Between whole OccupancyGrids only the changed rectangles go out (on "
-        "<topic>_updates); after updates a whole grid is sent again at most this long after "
-        "the last one (s; 0: only when the extent grows).", "s", ge=0)] = 30.0
+        "<topic>_updates); a whole grid goes out again when the extent grows, when a ROS "
+        "subscriber of the topic appears, and after updates at most this long after the last "
+        "one (s; 0: not by time).", "s", ge=0)] = 300.0
     region: Annotated[Literal["recent", "robots", "known"], _doc(
         "The published region: what is known around the ISMs fused lately (with or without "
         "robot poses), around the robots' poses, or the whole known map.")] = "recent"

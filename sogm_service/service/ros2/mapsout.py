@@ -4,9 +4,12 @@ latched (TRANSIENT_LOCAL, depth 1) topics, their changes on ``<topic>_updates`` 
 
 A map topic's whole ``OccupancyGrid`` goes out on the first publication, when the grid's extent
 (size, origin, resolution or frame) changes, when the change would cost more than half of a
-whole grid, and ``full_period_s`` after the last whole grid if updates followed it (so a late
-subscriber, which gets only the latched grid and the latched last update, is behind for at most
-that long).  Otherwise only the rectangles that changed since the last publication go out
+whole grid, at the first publication after a ROS subscriber of the topic appeared (its
+liveliness token), and ``full_period_s`` after the last whole grid, each time only if updates
+followed that grid.  A late subscriber gets only the latched grid and the latched last update,
+so the whole grid that follows its arrival makes its copy exact one period later; the periodic
+one is a safety net for subscribers that declare no token.  Otherwise only the rectangles that
+changed since the last publication go out
 (:func:`~sogm_service.adapters.ros2.updates.changed_rects`), one update each, on the same QoS.
 After a whole grid that follows updates, an empty update (0 x 0) replaces the latched one, so a
 late subscriber never gets an update older than the grid it writes it into.
@@ -126,7 +129,8 @@ class MapsOut(BridgeState):
             rects = []
             if not whole and last is not None:
                 rects = changed_rects(last.data, grid.data)
-                due = period > 0 and pub.updates_since_full > 0 and now - pub.full_at >= period
+                due = pub.updates_since_full > 0 and (
+                    pub.joined or (period > 0 and now - pub.full_at >= period))
                 if not rects and not due:
                     return False
                 whole = due or not updates or \
@@ -138,7 +142,7 @@ class MapsOut(BridgeState):
                 if pub.updates_since_full:  # the latched update must not predate this grid
                     self._put_update(topic, GridUpdateFields(
                         grid.frame, grid.stamp, 0, 0, 0, 0, np.zeros((0, 0), np.int8)))
-                pub.full_at, pub.updates_since_full = now, 0
+                pub.full_at, pub.updates_since_full, pub.joined = now, 0, False
             else:
                 for r in rects:
                     self._put_update(topic, grid_update(grid, r))

@@ -39,6 +39,6 @@ class Ros2BridgeSettings:
     max_cells: int = MAX_ISM_CELLS
     max_tilt: float = DEFAULT_MAX_TILT
     max_topics: int = 4096
-    full_period_s: float = 30.0  # a whole grid at least this often after updates; 0: never
+    full_period_s: float = 300.0  # a whole grid at least this often after updates; 0: never
     whole_masks: bool = True  # nav2's filter masks whole at every change (no updates)
     max_frames: int = 1024

@@ -61,6 +61,7 @@ class Publisher:
     full_at: float = 0.0  # time.monotonic() of the last whole grid
     updates_since_full: int = 0
     whole_bytes: int = 0  # the last whole grid's payload: what each round of updates saves
+    joined: bool = False  # a subscriber appeared since the last whole grid
 
 
 class BridgeState:
@@ -139,6 +140,16 @@ class BridgeState:
                     "publishers": len(self._publishers),
                     "subscription_tokens": len(self._sub_tokens)}
 
+    def _subscriber_joined(self, topic: str) -> None:
+        """A ROS subscriber of one of our map topics appeared: its next publication is a
+        whole grid.  A late subscriber gets only the latched grid and the latched last update,
+        so without it the updates in between would be missing from its copy."""
+        with self._lock:
+            pub = self._publishers.get(topic)
+            if pub is not None and pub.last is not None:
+                pub.joined = True
+                self.counters["subscribers_joined"] += 1
+
     def _ensure_subscription_token(self, topic: str, ros_type: str) -> None:
         qos = QOS_DEFAULT
         with self._lock:
@@ -168,7 +179,12 @@ class BridgeState:
             tok = parse_token(str(sample.key_expr))
         except Ros2DecodeError:
             return
-        if tok.kind != EntityKind.PUBLISHER or tok.zid == self.zid:
+        if tok.zid == self.zid:
+            return
+        if tok.kind == EntityKind.SUBSCRIPTION:
+            self._subscriber_joined(tok.topic)
+            return
+        if tok.kind != EntityKind.PUBLISHER:
             return
         try:
             ros_type = ros_type_name(tok.dds_type)
