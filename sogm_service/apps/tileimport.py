@@ -17,10 +17,24 @@ from sogm_service.wire.errors import StoreConflictError, TileFormatError
 from sogm_service.wire.tilefile import SUFFIX, MapKey, TileHeader, tile_from_bytes
 
 
+def is_url(store: str | Path) -> bool:
+    """Whether a store argument names an object store (``s3://bucket/prefix``)."""
+    return str(store).startswith("s3://")
+
+
+def open_readonly(store: str, key: MapKey, endpoint_url: str | None) -> TileStore:
+    """A store of one map, opened to read only (any frame)."""
+    if is_url(store):
+        from sogm_service.store.s3 import S3Store
+
+        return S3Store(store, *key, frame=None, readonly=True, endpoint_url=endpoint_url)
+    return DirectoryStore(store, *key, frame=None, readonly=True)
+
+
 def cmd_import(args: argparse.Namespace, out: TextIO) -> int:
     into = str(args.into)
     lock_fd = None
-    if not into.startswith("s3://"):  # an object store fences each write instead
+    if not is_url(into):  # an object store fences each write instead
         Path(into).mkdir(parents=True, exist_ok=True)
         lock_fd = lock_directory(Path(into))
     try:
@@ -86,13 +100,11 @@ def _store_for(header: TileHeader, stores: dict[MapKey, TileStore], dest: str,
     """The destination store of the tile's map; its frame is the one already stored, if any."""
     key = (header.map_name, header.resolution, header.tile_size)
     if key not in stores:
-        from sogm_service.apps.tiletool import open_readonly
-
         probe = open_readonly(dest, key, endpoint_url)
         frames = {info.header.frame for info in probe.index().values()}
         frame = frames.pop() if len(frames) == 1 else header.frame
         store: TileStore
-        if dest.startswith("s3://"):
+        if is_url(dest):
             from sogm_service.store.s3 import S3Store
 
             store = S3Store(dest, *key, frame=frame, endpoint_url=endpoint_url)

@@ -51,10 +51,10 @@ from sogm_service.apps.options import (
     standalone,
     subcommands,
 )
+from sogm_service.apps.tileimport import is_url, open_readonly
 from sogm_service.core import logodds
 from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
-from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.format import read_tile_file, read_tile_header
 from sogm_service.store.protocol import TileStore
 from sogm_service.wire.errors import ConfigError, StoreLockedError, TileFormatError
@@ -172,19 +172,6 @@ class Entry:
     def key(self) -> MapKey | None:
         h = self.header
         return None if h is None else (h.map_name, h.resolution, h.tile_size)
-
-
-def is_url(store: str | Path) -> bool:
-    return str(store).startswith("s3://")
-
-
-def open_readonly(store: str, key: MapKey, endpoint_url: str | None) -> TileStore:
-    """A store of one map, opened to read only (any frame)."""
-    if is_url(store):
-        from sogm_service.store.s3 import S3Store
-
-        return S3Store(store, *key, frame=None, readonly=True, endpoint_url=endpoint_url)
-    return DirectoryStore(store, *key, frame=None, readonly=True)
 
 
 def scan(directory: str | Path, verify: bool = False,

@@ -65,8 +65,9 @@ MINE = {(i, j) for i in range(4) for j in range(4) if (i + 2 * j) % 3}  # 2/3 of
 
 @pytest.mark.parametrize("resolution", [RES, 2 * RES, 4 * RES])
 def test_a_window_through_a_member_equals_the_whole_map(resolution: float) -> None:
-    """At map resolution (the mosaic path) and coarser (the gather path: 0.5 m over 0.25 m
-    cells is the case that read every tile the member did not own as unknown)."""
+    """At map resolution (the mosaic path) and coarser (the gather path, which reads only the
+    cells the warp interpolates from: those of tiles the member does not own come from their
+    owners too, never as unknown)."""
     whole = _whole_map()
     owners = _Owners(whole, MINE)
     gathered = GatheredMap(_member(whole, MINE), owners)
