@@ -142,19 +142,10 @@ def export_nav2(args: argparse.Namespace) -> int:
 
 def _filter_spec(args: argparse.Namespace) -> FilterSpec:
     """The masks asked by --keepout and --speed (ValueError for a malformed one)."""
-    from sogm_service.adapters.ros2.filters import FilterSpec, fixed_threshold
+    from sogm_service.adapters.ros2.filters import spec_from_options
 
-    speed: dict[str, int] = {}
-    for item in (args.speed.split(",") if args.speed else []):
-        pattern, sep, pct = item.rpartition("=")
-        if not sep or not pattern or not pct.strip().isdigit() or not 1 <= int(pct) <= 100:
-            raise ValueError(f"--speed {item!r}: PATTERN=PERCENT with a percent in 1..100")
-        speed[pattern] = int(pct)
-    for name in ("keepout_threshold", "speed_threshold"):
-        fixed_threshold(getattr(args, name))  # a probability in (0.5, 1)
-    return FilterSpec(keepout=tuple(args.keepout.split(",")) if args.keepout else (),
-                      keepout_threshold=args.keepout_threshold, speed=speed,
-                      speed_threshold=args.speed_threshold)
+    return spec_from_options(args.keepout, args.keepout_threshold, args.speed,
+                             args.speed_threshold)
 
 
 def _masks(client: MapClient, spec: FilterSpec, names: list[str], window: dict[str, Any],

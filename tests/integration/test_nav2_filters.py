@@ -80,6 +80,37 @@ def cells_at(holder: Holder, x: float, y: float, w: float, h: float) -> np.ndarr
     return grid[r0:r0 + round(h / RES), c0:c0 + round(w / RES)]
 
 
+def check_viewer_keepout(endpoint: str) -> None:
+    """``view --keepout "*/person"``'s hub draws the keepout display tile red over the person
+    and leaves the pallet as the map shows it."""
+    cv2 = pytest.importorskip("cv2")
+    from sogm_service.adapters.ros2.filters import FilterSpec
+    from sogm_service.apps.viewer.hub import HubSettings, MapHub
+    from sogm_service.apps.viewer.pictures import KEEPOUT_BGR
+    from sogm_service.apps.viewer.tiles import TileSpec
+
+    hub = MapHub(HubSettings(endpoint=endpoint, map_name=MAP,
+                             filters=FilterSpec(keepout=("*/person",)))).start()
+    try:
+        assert wait_until(lambda: hub.lattice() is not None, TIMEOUT)
+        span = 64 * RES  # lattice tile (0, 0) at level 0: 64 pixels of 5 cm
+        pictures = {}
+        for mode in ("keepout", "class"):
+            spec = TileSpec(mode, 0, 0, 0, 0.0, 0.0, span, 64)
+            assert wait_until(lambda s=spec: hub.tile(s, 0.0) is not None, TIMEOUT)  # type: ignore[misc]
+            tile = hub.tile(spec, 0.0)
+            assert tile is not None
+            img = cv2.imdecode(np.frombuffer(tile.png, np.uint8), cv2.IMREAD_COLOR)
+            pictures[mode] = img[::-1]  # map order: row 0 at the smallest y
+        keep = pictures["keepout"].astype(float)
+        person = keep[20:40, 20:30].reshape(-1, 3)  # x 1.0-1.5, y 1.0-2.0
+        pallet = keep[20:40, 40:60].reshape(-1, 3)
+        assert np.all(np.abs(person - KEEPOUT_BGR).sum(axis=1) < 120)
+        assert np.all(np.abs(pallet - KEEPOUT_BGR).sum(axis=1) > 200)
+    finally:
+        hub.close()
+
+
 @pytest.mark.parametrize("whole_masks", [True, False], ids=["whole", "updates"])
 def test_keepout_follows_a_person_and_fades_and_speed_limits_a_pallet(
         tmp_path: Any, whole_masks: bool) -> None:
@@ -165,6 +196,9 @@ def test_keepout_follows_a_person_and_fades_and_speed_limits_a_pallet(
                     cells = map_server_scale(px, doc["occupied_thresh"], doc["free_thresh"])
                 assert doc["origin"][:2] == pytest.approx([x0, y0])
                 assert np.array_equal(cells, holder.cells()), mask
+
+            if whole_masks:  # the viewer's overlay of the same mask: red over the person
+                check_viewer_keepout(srv.endpoint)
 
             # filter info: latched, what nav2's filters read, and exactly once per topic
             assert wait_until(lambda: keep_info.all() and speed_info.all(), TIMEOUT)

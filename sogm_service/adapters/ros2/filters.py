@@ -19,6 +19,9 @@ the masks come from the map's layers, named by layer or class pattern
 
 A layer that forgets (``[map] forget``) fades: its evidence decays toward 0 as the map's clock
 moves on, so its keepout drops to 0 once below the threshold and to -1 once gone.
+
+The rules need numpy only (the viewer draws them without the ``ros2`` extra); the grids
+(:func:`mask_grid`, :func:`filter_masks`) need rosbags.
 """
 
 from __future__ import annotations
@@ -26,16 +29,18 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from sogm_service.adapters.ros2.cdr import OccupancyGridFields
-from sogm_service.adapters.ros2.convert import yaw_quaternion
 from sogm_service.core import logodds
 from sogm_service.core.classes import LayerClass, fuse_classes, member_layers, resolve
 from sogm_service.core.geometry import GridGeometry
-from sogm_service.core.map.tiles import TiledMap
+
+if TYPE_CHECKING:  # the grids need rosbags (the ros2 extra); the masks' rules do not
+    from sogm_service.adapters.ros2.cdr import OccupancyGridFields
+    from sogm_service.core.map.tiles import TiledMap
 
 KEEP_OUT = 100
 FREE = 0
@@ -66,6 +71,29 @@ class FilterSpec:
     def masks(self) -> list[str]:
         """The masks this spec makes, in publication order."""
         return [name for name, on in ((KEEPOUT, self.keepout), (SPEED, self.speed)) if on]
+
+
+def parse_speed(text: str | None) -> dict[str, int]:
+    """``PATTERN=PERCENT,...`` (the command line's ``--speed``) -> ``{pattern: percent}``;
+    ``ValueError`` for an entry without a pattern or a percent in 1..100."""
+    out: dict[str, int] = {}
+    for item in (text.split(",") if text else []):
+        pattern, sep, pct = item.rpartition("=")
+        if not sep or not pattern or not pct.strip().isdigit() or not 1 <= int(pct) <= 100:
+            raise ValueError(f"--speed {item!r}: PATTERN=PERCENT with a percent in 1..100")
+        out[pattern] = int(pct)
+    return out
+
+
+def spec_from_options(keepout: str | None, keepout_threshold: float, speed: str | None,
+                      speed_threshold: float) -> FilterSpec:
+    """The masks the command-line options ask (``--keepout A,B``, ``--speed P=N,...`` and
+    their thresholds, each a probability in (0.5, 1)); ``ValueError`` for a malformed one."""
+    for p in (keepout_threshold, speed_threshold):
+        fixed_threshold(p)
+    return FilterSpec(keepout=tuple(keepout.split(",")) if keepout else (),
+                      keepout_threshold=keepout_threshold, speed=parse_speed(speed),
+                      speed_threshold=speed_threshold)
 
 
 def fixed_threshold(p: float) -> int:
@@ -146,6 +174,9 @@ def mask_cells(spec: FilterSpec, stack: npt.NDArray[np.int16], names: Sequence[s
 def mask_grid(cells: npt.NDArray[np.int8], window: GridGeometry, *, frame: str,
               stamp: float) -> OccupancyGridFields:
     """A mask's cells over ``window`` as an OccupancyGrid (the map's extent and origin)."""
+    from sogm_service.adapters.ros2.cdr import OccupancyGridFields
+    from sogm_service.adapters.ros2.convert import yaw_quaternion
+
     if cells.shape != window.shape:
         raise ValueError(f"cells of shape {cells.shape}, window {window.shape}")
     o = window.origin

@@ -68,6 +68,16 @@ def _arguments(p: argparse.ArgumentParser) -> None:
                    help="allow --http on an address other than loopback (no authentication: "
                         "put a TLS proxy with a login in front, or use an SSH tunnel instead)")
     p.add_argument("--open", action="store_true", help="open the page in a browser")
+    p.add_argument("--keepout", default=None, metavar="A,B",
+                   help="layers or class patterns of the keepout mask overlay (nav2's "
+                        "KeepoutFilter, as [nav2] keepout; default: none)")
+    p.add_argument("--keepout-threshold", type=float, default=0.6, metavar="P",
+                   help="probability at or above which a cell is kept out (default 0.6)")
+    p.add_argument("--speed", default=None, metavar="PATTERN=PERCENT,...",
+                   help="layers or class patterns and their limits of the speed mask overlay "
+                        "(as [nav2] speed; default: none)")
+    p.add_argument("--speed-threshold", type=float, default=0.6, metavar="P",
+                   help="probability at or above which a speed class applies (default 0.6)")
 
 
 def parse_http(text: str) -> tuple[str, int]:
@@ -133,7 +143,7 @@ def _server(args: argparse.Namespace, host: str) -> Any:
     hub = MapHub(HubSettings(endpoint=args.connect, map_name=args.map, prefix=args.prefix,
                              zenoh_config=args.zenoh_config, pose_key=args.pose_key,
                              ism_key=args.ism_key or None, poll_s=args.poll,
-                             query_timeout_s=args.timeout))
+                             query_timeout_s=args.timeout, filters=_filters(args)))
     app = create_app(hub, refresh_s=args.refresh,
                      allowed_hosts=allowed_hosts(host, args.allow_host))
     verbose = getattr(args, "log_level", None) == "debug"
@@ -156,7 +166,19 @@ def _prepare(args: argparse.Namespace) -> tuple[str, int]:
             "--allow-non-loopback behind a TLS proxy with authentication.")
     if min(args.refresh, args.poll, args.timeout) <= 0:
         raise UsageError("--refresh, --poll and --timeout must be > 0")
+    _filters(args)
     return host, port
+
+
+def _filters(args: argparse.Namespace) -> Any:
+    """The mask overlays of --keepout and --speed (a UsageError for a malformed one)."""
+    from sogm_service.adapters.ros2.filters import spec_from_options
+
+    try:
+        return spec_from_options(args.keepout, args.keepout_threshold, args.speed,
+                                 args.speed_threshold)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def start_viewer(argv: list[str]) -> RunningViewer:

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from sogm_service.adapters.ros2.filters import FilterSpec
 from sogm_service.apps.render import UNKNOWN_HEX, palette_hex
 from sogm_service.apps.viewer.pictures import fetch, render
 from sogm_service.apps.viewer.tiles import Lattice, TileSpec
@@ -68,6 +69,7 @@ class HubSettings:
     supercells_timeout_s: float = 30.0  # the first SEVDS call of a server loads its kernels
     reopen_after: int = 10
     cache_tiles: int = 1024
+    filters: FilterSpec = field(default_factory=FilterSpec)  # the keepout and speed overlays
 
     def zenoh_settings(self) -> ZenohSettings:
         """Client mode to ``endpoint`` (loopback, multicast off), or the given Zenoh config
@@ -375,7 +377,8 @@ class MapHub:
             if entry is not None and entry.digest == digest:
                 fresh = CachedTile(digest, entry.png, now, source)  # no new picture
             else:
-                fresh = CachedTile(digest, render(spec, data), now, source)
+                fresh = CachedTile(digest, render(spec, data, reply_layers,
+                                                  self.settings.filters), now, source)
             with self._lock:
                 self._cache[key] = fresh
                 self._cache.move_to_end(key)

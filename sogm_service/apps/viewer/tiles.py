@@ -27,7 +27,9 @@ MAX_LEVEL = 16
 MAX_TILES_PER_VIEW = 96
 """Display tiles one view may ask for in one refresh (more: the nearest to the centre)."""
 
-MODES = ("layer", "class", "fused")
+MODES = ("layer", "class", "fused", "keepout", "speed")
+"""``keepout`` and ``speed``: nav2's filter masks over the map (the viewer's ``--keepout`` and
+``--speed``, the rules of :mod:`sogm_service.adapters.ros2.filters`)."""
 METHODS = ("bayes", "max")
 
 
@@ -83,6 +85,8 @@ class View:
             return f"layer:{self.layer}"
         if self.mode == "fused":
             return f"fused:{self.method}:{','.join(self.layers)}"
+        if self.mode in ("keepout", "speed"):
+            return self.mode
         return "class"
 
 

@@ -302,6 +302,12 @@
     if ($("mode").value === "class") {
       palette().forEach((c, k) => row(sw(c), state.info.layers[k]));
       row(sw(unknown), "unknown (no layer above 0.5)");
+    } else if ($("mode").value === "keepout" || $("mode").value === "speed") {
+      const keep = $("mode").value === "keepout";
+      row(sw(keep ? "#e62828" : "#ffaa00"),
+          keep ? "kept out (view --keepout)" : "speed limited, stronger when slower (view --speed)");
+      row(sw("#808080"), "the map, pooled by max (P_M)");
+      row(sw(unknown), "unknown (no evidence)");
     } else {
       const g = document.createElement("span");
       g.className = "gradient";

@@ -158,3 +158,37 @@ def test_masks_written_as_nav2_map_files_read_back_as_map_server_reads_them(
     with pytest.raises(ValueError):
         export_mask(tmp_path, np.array([[50]], np.int8), GridGeometry(0.05, 1, 1,
                     Pose2D(0, 0, 0)), mode="trinary", name="bad")
+
+
+def test_options_parse_and_the_viewer_paints_the_masks_over_the_map() -> None:
+    pytest.importorskip("cv2")
+    from sogm_service.adapters.ros2.filters import parse_speed, spec_from_options
+    from sogm_service.apps.viewer.pictures import KEEPOUT_BGR, SPEED_BGR, mask_image
+    from sogm_service.apps.viewer.tiles import parse_view
+
+    assert parse_speed("*/pallet=40,robot1/cart=70") == {"*/pallet": 40, "robot1/cart": 70}
+    for bad in ("*/pallet", "=40", "*/pallet=0", "*/pallet=101", "*/pallet=x"):
+        with pytest.raises(ValueError):
+            parse_speed(bad)
+    with pytest.raises(ValueError):
+        spec_from_options("*/person", 0.5, None, 0.6)
+    spec = spec_from_options("*/person", 0.6, "*/pallet=40", 0.6)
+    assert spec.keepout == ("*/person",) and dict(spec.speed) == {"*/pallet": 40}
+    view = parse_view({"xmin": 0, "ymin": 0, "xmax": 1, "ymax": 1, "px_per_m": 10,
+                       "mode": "keepout"}, ["robot1/person"])
+    assert view.signature() == "keepout"
+    # 1 x 3 cells: a person (P 0.95), a pallet (P 0.92), a wall; row 0 of the map
+    layers = ["robot1/person", "robot1/pallet", "robot1/walls"]
+    data = np.zeros((3, 1, 3), np.int16)
+    data[0, 0, 0], data[1, 0, 1], data[2, 0, 2] = 2944, 2500, 4000
+    keep = mask_image(data, layers, spec, "keepout")
+    speed = mask_image(data, layers, spec, "speed")
+    plain = mask_image(data, layers, FilterSpec(), "keepout")  # no mask asked: the map alone
+    assert keep.shape == speed.shape == plain.shape == (1, 3, 3)
+
+    def towards(img: np.ndarray, k: int, colour: np.ndarray) -> bool:
+        d0 = np.abs(plain[0, k].astype(float) - colour).sum()
+        return bool(np.abs(img[0, k].astype(float) - colour).sum() < 0.5 * d0)
+    assert towards(keep, 0, KEEPOUT_BGR) and not towards(keep, 1, KEEPOUT_BGR)
+    assert np.array_equal(keep[0, 1:], plain[0, 1:])
+    assert towards(speed, 1, SPEED_BGR) and np.array_equal(speed[0, [0, 2]], plain[0, [0, 2]])
