@@ -78,9 +78,9 @@ def test_nodes_sit_inside_their_supercells_and_free_floor_is_evidence(
     floor = p[v, u] < 0.1
     assert floor.sum() >= 50 and (evidence[floor] == FREE).all()
     assert (evidence[p[v, u] == 0.5] == UNKNOWN).all()
-    for k in range(len(reply.nodes)):  # compact: no supercell spans more than 3 blocks
+    for k in range(len(reply.nodes)):  # compact: no supercell spans more than 4 blocks
         rows, cols = np.nonzero(labels == k)
-        assert max(np.ptp(rows), np.ptp(cols)) + 1 <= 3 * 8
+        assert max(np.ptp(rows), np.ptp(cols)) + 1 <= 4 * 8
 
 
 def test_supercell_query_with_bad_parameters_names_them(server: ServerProcess) -> None:

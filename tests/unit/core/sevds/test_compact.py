@@ -56,7 +56,7 @@ def test_a_thin_wall_ring_is_cut_into_pieces_within_the_extent_bound(block: int)
 def test_the_extent_bound_holds_on_a_room_map_for_both_criteria() -> None:
     scene = room_scene(1)
     for criterion in ("energy", "distribution"):
-        for extent in (1.5, 3.0):
+        for extent in (1.5, 4.0):
             p = SevdsParams(block_size=8, criterion=criterion, extent=extent)
             labels = sevds(scene.stack, p).labels
             assert extents(labels).max() <= 8 + 2 * p.margin <= extent * 8
@@ -131,3 +131,4 @@ def test_extent_is_validated() -> None:
             SevdsParams(extent=bad)
     assert SevdsParams(block_size=8, extent=3.0).margin == 8
     assert SevdsParams(block_size=8, extent=1.0).margin == 0
+    assert SevdsParams(block_size=8).margin == 12  # the default: 4 blocks across
