@@ -64,9 +64,13 @@ def _line(proc: subprocess.Popen[str], word: str) -> list[str]:
             return parts[1:]
 
 
-def test_a_flood_is_pushed_back_accounted_for_and_queries_answered(tmp_path: Path) -> None:
+@pytest.mark.parametrize("policy", ["lossless", "latest"])
+def test_a_flood_is_pushed_back_or_shed_accounted_for_and_queries_answered(
+        tmp_path: Path, policy: str) -> None:
+    """``lossless`` pushes back (callbacks wait for room); ``latest`` sheds what a newer ISM
+    of its key replaced, counted: either way fused + counted = published."""
     srv = start_server(tmp_path, {"map": {"resolution": MAP_RES},
-                                  "limits": {"queue_size": 4, "queue_policy": "lossless"}})
+                                  "limits": {"queue_size": 4, "queue_policy": policy}})
     floods: list[subprocess.Popen[str]] = []
     try:
         with srv.client(timeout=30.0) as client:
@@ -104,9 +108,13 @@ def test_a_flood_is_pushed_back_accounted_for_and_queries_answered(tmp_path: Pat
                          "isms_pushed_back")}
 
             assert wait_until(lambda: handled()["isms_fused"] + handled()["isms_rejected"]
-                              >= published, 120.0, 0.2), (handled(), published)
+                              + handled()["isms_dropped_latest"] >= published, 120.0, 0.2), \
+                (handled(), published)
             counts = handled()
-        assert counts["isms_pushed_back"] > 0, counts  # offered more than it fuses
+        if policy == "lossless":  # offered more than it fuses: the publishers were held
+            assert counts["isms_pushed_back"] > 0 and counts["isms_dropped_latest"] == 0, counts
+        else:  # ... or the superseded ISMs were shed
+            assert counts["isms_dropped_latest"] > 0 and counts["isms_pushed_back"] == 0, counts
         assert counts["isms_received"] == published
         assert counts["isms_fused"] + counts["isms_rejected"] + counts["isms_dropped_latest"] \
             == published, (counts, published)
