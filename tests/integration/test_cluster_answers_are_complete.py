@@ -46,12 +46,14 @@ def deterministic_isms(n: int = N_ISMS, seed: int = 11) -> list[tuple[np.ndarray
     return out
 
 
+# fetch_timeout_s: a member fetching a whole area's tiles from two owners on a busy 2-core
+# machine may wait more than the default second (then it fails the query with no_owner).
 def member(tmp_path: Path, name: str, router: str, servers: int,
            sections: dict[str, dict[str, Any]] | None = None) -> ServerProcess:
     """A cluster member connected to the router (its own folder and store directory unless
     ``sections`` name another store)."""
     base: dict[str, dict[str, Any]] = {
-        "cluster": {"enabled": True, "replicas": 2},
+        "cluster": {"enabled": True, "replicas": 2, "fetch_timeout_s": 5.0},
         "storage": {"directory": str(tmp_path / name / "tiles"), "checkpoint_interval_s": 1.0},
         "zenoh": {"listen": [free_tcp_endpoint()], "connect": [router]},
     }

@@ -4,6 +4,8 @@ on a real SeaweedFS (tests/s3server.py) and no disk of their own.
 * Killing every member and starting one fresh member on the bucket gives the map back: its
   sub-map equals the one before (every tile had been written: the flush interval is what a
   crash may lose), and no member deleted the tiles it stopped owning from the shared bucket.
+* A member joining while the bucket's copies are behind the members' memory loads its tiles
+  from the bucket: their owners write them there for it.
 * A member stopped with SIGSTOP while the others take over and fuse newer ISMs, then resumed
   and shut down (which flushes its stale tiles), overwrites none of the newer tiles: its writes
   are fenced by the objects' ETags and the ISMs they hold.
@@ -22,6 +24,7 @@ import pytest
 from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import free_tcp_endpoint
 from sogm_service.store.s3 import S3Store
+from sogm_service.wire.keys import MapKeys
 from sogm_service.wire.tilefile import marks_of
 from tests.conftest import ServerProcess, start_server, wait_until
 from tests.integration.test_cluster_answers_are_complete import (
@@ -52,7 +55,7 @@ def s3_member(tmp_path: Path, name: str, router: str, servers: int, bucket: dict
     """A member with no disk of its own: its tiles are the bucket's."""
     (tmp_path / name).mkdir(exist_ok=True)
     return start_server(tmp_path / name, {
-        "cluster": {"enabled": True, "replicas": 2},
+        "cluster": {"enabled": True, "replicas": 2, "fetch_timeout_s": 5.0},
         "storage": {"checkpoint_interval_s": checkpoint_s},
         "store": bucket,
         "zenoh": {"listen": [free_tcp_endpoint()], "connect": [router]},
@@ -132,3 +135,34 @@ def test_a_member_resumed_after_the_others_took_over_never_overwrites_a_newer_ti
     assert stored_marks(bucket) == newer  # a overwrote no newer tile
     log = a.log()
     assert "holds ISMs this one lacks" in log, log[-3000:]
+
+
+@pytest.mark.timeout(300)
+def test_a_joining_member_loads_its_tiles_from_the_bucket(
+        tmp_path: Path, router: str, bucket: dict[str, Any], procs: list[ServerProcess]) -> None:
+    """The members never checkpoint on their own, so the bucket's copies are behind their
+    memory when a third member joins: the owners write their copies to the bucket for it and
+    answer ``stored``, and it loads them from there (no tile crosses Zenoh); its sub-map
+    equals theirs."""
+    for k, name in enumerate("ab"):
+        procs.append(s3_member(tmp_path, name, router, k + 1, bucket, checkpoint_s=3600.0))
+    with MapClient.connect(router, timeout=5.0) as robot:
+        assert wait_until(lambda: len(member_stats(robot)) == 2, 30)
+        publish(robot, 1000.0, seed=11)
+        assert wait_until(lambda: all(
+            s["counters"].get("isms_fused", 0) >= N_ISMS for s in member_stats(robot).values()),
+            90)
+        before = window(robot)
+        assert stored_marks(bucket) == {}  # nothing written yet
+        c = s3_member(tmp_path, "c", router, 3, bucket, checkpoint_s=3600.0)
+        procs.append(c)
+        assert wait_until(lambda: len(member_stats(robot)) == 3 and not any(
+            s["extra"].get("cluster_handover") for s in member_stats(robot).values()), 60)
+        stats = member_stats(robot)
+        joiner = stats[c.server_id]["counters"]
+        assert joiner.get("cluster_tiles_loaded_from_store", 0) >= 10, joiner
+        assert joiner.get("cluster_tiles_pulled", 0) == 0  # none came as a blob
+        assert sum(s["counters"].get("cluster_tiles_written_for_handover", 0)
+                   for s in stats.values()) >= joiner["cluster_tiles_loaded_from_store"]
+        keys = MapKeys(robot.prefix, robot.map_name)
+        assert np.array_equal(window(robot, keys.member(c.server_id, "submap")), before)

@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from sogm_service.core.map.tile import Tile, planes_of
+from sogm_service.core.map.tile import Tile, TileSnapshot, planes_of
 from sogm_service.core.map.tiletypes import Mark, TileIndex
 from sogm_service.service.cluster.handover import content_digest
 from sogm_service.service.cluster.view import ClusterView
@@ -36,7 +36,7 @@ class Pulled:
     """An owner's answer to a tile request: ``tile`` (with the blob), ``same`` (the asker's
     copy is current) or ``empty``, and the tile's applied marks."""
 
-    status: str  # "tile" | "same" | "empty"
+    status: str  # "tile" | "same" | "empty" | "stored" (written to the shared store: load it)
     applied: dict[str, Mark]
     blob: bytes | None = None
 
@@ -65,12 +65,15 @@ class TileExchange(ClusterView):
 
     def _fetch_one(self, index: TileIndex, digest: str | None,
                    timeout: float) -> Pulled | None:
-        replies = self._ask(index, digest, timeout)
+        replies = self._ask(index, digest, timeout, via_store=True)
         return self._first(replies)
 
-    def _ask(self, index: TileIndex, digest: str | None, timeout: float) -> Any:
+    def _ask(self, index: TileIndex, digest: str | None, timeout: float,
+             via_store: bool = False) -> Any:
+        """``via_store``: on a shared store, the owner writes its copy there and answers
+        ``stored`` instead of sending it (a handover loads it from the store)."""
         assert self._session is not None
-        body = msgpack.packb({"digest": digest})
+        body = msgpack.packb({"digest": digest, "via_store": via_store})
         return self._session.get(self.keys.key("cluster", "tile", str(index[0]), str(index[1])),
                                  target=zenoh.QueryTarget.ALL,
                                  consolidation=zenoh.ConsolidationMode.NONE,
@@ -114,21 +117,22 @@ class TileExchange(ClusterView):
             index = (int(parts[1]), int(parts[2]))
             if not self.serves(index):
                 return  # not an owner, or not current yet: others answer
-            digest = None
+            digest, via_store = None, False
             if q.payload is not None:
                 raw = q.payload.to_bytes()
                 if len(raw) <= MAX_CLUSTER_BYTES:
                     body = msgpack.unpackb(raw)
                     if isinstance(body, dict):
-                        digest = body.get("digest")
-            q.reply(q.key_expr, self.tile_answer(index, digest), encoding=MSGPACK)
+                        digest, via_store = body.get("digest"), bool(body.get("via_store"))
+            q.reply(q.key_expr, self.tile_answer(index, digest, via_store), encoding=MSGPACK)
             self.stats.count("cluster_tiles_served")
         except (ValueError, IndexError, TypeError, msgpack.UnpackException):
             self.stats.count("cluster_bad_requests")
         except Exception:
             log.exception("cluster: answering a tile failed")
 
-    def tile_answer(self, index: TileIndex, digest: str | None) -> bytes:
+    def tile_answer(self, index: TileIndex, digest: str | None,
+                    via_store: bool = False) -> bytes:
         if index in self.tiled.known_tiles():
             self.tiled.get_tile(index)  # loads a stored tile
         snap = self.tiled.snapshot(index)
@@ -137,8 +141,26 @@ class TileExchange(ClusterView):
         applied = [[k, [v[0], v[1]]] for k, v in snap.applied.items()]
         if digest is not None and digest == content_digest(snap.layers, snap.data):
             return msgpack.packb({"status": "same", "applied": applied})
+        if via_store and self._write_shared(snap):
+            return msgpack.packb({"status": "stored", "applied": applied})
         return msgpack.packb({"status": "tile", "applied": applied,
                               "blob": self.files.encode(snap)})
+
+    def _write_shared(self, snap: TileSnapshot) -> bool:
+        """Write a snapshot to a shared store now (for a member taking the tile over to load
+        it from there); False without a shared store or when the write fails."""
+        store = self.tiles.store
+        if store is None or not store.shared:
+            return False
+        try:
+            store.write(snap.index[0], snap.index[1], snap.layers, snap.data, snap.stamp,
+                        snap.decay or None, snap.applied or None, snap.version)
+        except Exception as exc:
+            log.warning("cluster: tile %s not written for a handover: %s", snap.index, exc)
+            return False
+        self.tiled.mark_saved(snap.index, snap.version)
+        self.stats.count("cluster_tiles_written_for_handover")
+        return True
 
     # -- queries: gathering tiles from owners ---------------------------------------------
     def fetch(self, indices: list[TileIndex]) -> dict[TileIndex, Tile | None]:

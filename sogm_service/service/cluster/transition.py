@@ -2,10 +2,12 @@
 from a current owner and their journals replayed after the marks the copy holds; the tiles it no
 longer owns are dropped from memory and from its own store.
 
-On a *shared* store (an object store every member writes, :attr:`TileStore.shared`) a tile no
-live member holds (every owner gone, a whole cluster restarted on its bucket) is loaded from
-the store, and its journal replayed after the stored copy's marks; a member that stops owning a
-tile drops it from memory only, since the stored object is the cluster's.
+On a *shared* store (an object store every member writes, :attr:`TileStore.shared`) tiles move
+through the store: a member taking a tile over asks its owners to write their copy there
+(``stored``: only the marks travel over Zenoh) and loads it; a tile no live member holds
+(every owner gone, a whole cluster restarted on its bucket) is loaded as it is stored.  Either
+way the journal is replayed after the loaded copy's marks.  A member that stops owning a tile
+drops it from memory only, since the stored object is the cluster's.
 """
 
 from __future__ import annotations
@@ -87,11 +89,17 @@ class Handover(TileExchange):
         """Bring ``index`` to its current state here and replay its journal; 1 if copied."""
         digest = self._local_digest(index)
         got = self._fetch_one(index, digest, self.settings.handover_timeout_s) if ask else None
-        stored = self._load_shared(index) if got is None else None
+        stored = self._load_shared(index) if got is None or got.status == "stored" else None
+        if got is not None and got.status == "stored":
+            if stored is None:  # written but unreadable here: replay the journal on ours
+                log.error("cluster: tile %s was written to the shared store for us but could "
+                          "not be loaded", index)
+                self.stats.count("cluster_tiles_unavailable")
+            got = None
         copied = 0
         with self._gate:
             applied: dict[str, Mark] = {}
-            if stored is not None:  # no live copy: the shared store's is the newest there is
+            if stored is not None:  # the owner's copy, or the newest there is, from the store
                 applied = stored
                 self.stats.count("cluster_tiles_loaded_from_store")
             elif got is not None:
