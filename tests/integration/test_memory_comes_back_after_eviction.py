@@ -62,7 +62,7 @@ def test_rss_returns_to_the_budget_after_a_burst(tmp_path: Path) -> None:
             stats = client.stats()
             rss = _rss_mb(srv.proc.pid)
         assert stats.counters.get("tiles_evicted", 0) > 0
-        assert stats.extra["tiles_written_total"] >= stats.counters["tiles_evicted"]
+        assert stats.extra["tiles_written_total"] > 0 and stats.extra["write_errors"] == 0
         assert rss <= BUDGET_MB + OVERHEAD_MB, (
             f"RSS {rss:.0f} MB after eviction (peak {peak:.0f} MB), budget {BUDGET_MB} MB")
     finally:
