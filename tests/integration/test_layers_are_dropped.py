@@ -4,7 +4,8 @@ server process with a tile store.
 Two robots map overlapping tiles under a memory budget so small that most tiles live only in
 the store; dropping ``robot2/*`` leaves robot1's sub-map bit for bit as it was, removes
 robot2's layers from ``info``, from every tile file and from the map a restarted server (after
-a SIGKILL right after the reply) loads; tiles only robot2 had written are gone.  A class
+a SIGKILL right after the reply) loads; tiles only robot2 had written are gone.  Both stores:
+a directory, and an S3 bucket on a real SeaweedFS (tests/s3server.py).  A class
 (``*/laser/obstacle``) then reads robot1's layer alone.  A key that carries no pattern is
 refused with a code, a counter and one log line, and changes nothing.
 """
@@ -23,8 +24,10 @@ import pytest
 from sogm_service.client.mapclient import MapClient
 from sogm_service.core.geometry import Pose2D
 from sogm_service.store.directory import DirectoryStore
+from sogm_service.store.s3 import S3Store
 from sogm_service.wire.errors import ServiceError
 from tests.conftest import ServerProcess, start_server, wait_processed, wait_until
+from tests.s3server import BUCKET
 
 pytestmark = pytest.mark.integration
 
@@ -35,10 +38,30 @@ WINDOW: dict[str, Any] = dict(x=20.0, y=4.0, width=40.0, height=8.0, resolution=
                               interp="nearest", encoding="logodds_i16")
 
 
-def sections(tmp_path: Path) -> dict[str, dict[str, Any]]:
-    return {"map": {"resolution": RES, "tile_size": T},
-            "storage": {"directory": str(tmp_path / "tiles"), "memory_budget_mb": 0.001,
-                        "checkpoint_interval_s": 0.2}}
+def sections(tmp_path: Path, bucket: dict[str, Any] | None = None,
+             ) -> dict[str, dict[str, Any]]:
+    storage: dict[str, Any] = {"memory_budget_mb": 0.001, "checkpoint_interval_s": 0.2}
+    out: dict[str, dict[str, Any]] = {"map": {"resolution": RES, "tile_size": T},
+                                      "storage": storage}
+    if bucket is None:
+        storage["directory"] = str(tmp_path / "tiles")
+    else:
+        out["store"] = bucket
+    return out
+
+
+@pytest.fixture(params=["directory", "s3"])
+def bucket(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch,
+           ) -> dict[str, Any] | None:
+    """None: a store directory; else a fresh prefix of the SeaweedFS test bucket (the AWS
+    environment the servers inherit set)."""
+    if request.param == "directory":
+        return None
+    seaweedfs = request.getfixturevalue("seaweedfs")
+    for name, value in seaweedfs.env.items():
+        monkeypatch.setenv(name, value)
+    return {"url": f"s3://{BUCKET}/{seaweedfs.new_prefix()}/drops",
+            "endpoint_url": seaweedfs.endpoint_url}
 
 
 def publish_fleet(client: MapClient) -> None:
@@ -61,19 +84,24 @@ def robot1_map(client: MapClient) -> np.ndarray:
     return np.asarray(client.submap(layers=ROBOT1, **WINDOW).data)
 
 
-def stored_layers(tmp_path: Path) -> dict[tuple[int, int], list[str]]:
-    """Each tile file's layers, read from disk (a read-only store takes no lock)."""
-    store = DirectoryStore(tmp_path / "tiles", "default", RES, T, readonly=True)
+def stored_layers(tmp_path: Path, bucket: dict[str, Any] | None = None,
+                  ) -> dict[tuple[int, int], list[str]]:
+    """Each stored tile's layers, read from the directory or the bucket (read-only)."""
+    store: DirectoryStore | S3Store = \
+        DirectoryStore(tmp_path / "tiles", "default", RES, T, readonly=True) if bucket is None \
+        else S3Store(bucket["url"], "default", RES, T, readonly=True,
+                     endpoint_url=bucket["endpoint_url"])
     return {index: list(info.header.layers) for index, info in sorted(store.index().items())}
 
 
-def test_dropping_robot2_leaves_robot1s_map_exactly(tmp_path: Path) -> None:
-    server = start_server(tmp_path, sections(tmp_path))
+def test_dropping_robot2_leaves_robot1s_map_exactly(tmp_path: Path,
+                                                    bucket: dict[str, Any] | None) -> None:
+    server = start_server(tmp_path, sections(tmp_path, bucket))
     try:
         with MapClient.connect(server.endpoint, timeout=10.0) as client:
             publish_fleet(client)
-            assert wait_processed(client, 3).get("isms_fused") == 3
-            assert wait_until(lambda: client.stats().counters.get("tiles_evicted", 0) >= 3)
+            assert wait_processed(client, 3).get("isms_fused") == 3, server.log()
+            assert wait_until(lambda: client.stats().counters.get("tiles_evicted", 0) >= 3, 30)
             before = robot1_map(client)
             assert sorted(client.info().layers) == sorted(ROBOT1 + ROBOT2)
             assert np.count_nonzero(before) > 900  # of 48 x 16 + 12 x 16 cells
@@ -84,7 +112,7 @@ def test_dropping_robot2_leaves_robot1s_map_exactly(tmp_path: Path) -> None:
             assert reply.tiles_rewritten == 4  # tiles 1-4 lost a plane (3 and 4 every one)
             assert reply.stored
             # What the store holds when the reply comes: no file carries robot2's layer.
-            on_disk = stored_layers(tmp_path)
+            on_disk = stored_layers(tmp_path, bucket)
             assert sorted(on_disk) == [(0, 0), (1, 0), (2, 0)]
             assert all(set(layers) <= set(ROBOT1) for layers in on_disk.values())
 
@@ -107,7 +135,7 @@ def test_dropping_robot2_leaves_robot1s_map_exactly(tmp_path: Path) -> None:
     finally:
         kill(server)  # a SIGKILL right after the reply: nothing is flushed at exit
 
-    restarted = start_server(tmp_path, sections(tmp_path), name="restarted")
+    restarted = start_server(tmp_path, sections(tmp_path, bucket), name="restarted")
     try:
         with MapClient.connect(restarted.endpoint, timeout=10.0) as client:
             assert sorted(client.info().layers) == ROBOT1

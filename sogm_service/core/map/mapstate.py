@@ -269,10 +269,13 @@ class MapState:
         return tile
 
     def mark_saved(self, index: TileIndex, version: int) -> None:
-        """A snapshot of version ``version`` of the tile is in the store."""
+        """A snapshot of version ``version`` of the tile is in the store.  A tile the map no
+        longer has (:meth:`discard`, or left empty by :meth:`drop_layers`) stays unknown: a
+        snapshot written after it left is the caller's to remove."""
         with self._struct:
             tile = self.tiles.get(index)
-            self.stored.add(index)
+            if tile is not None:  # an evicted tile is in ``stored`` already
+                self.stored.add(index)
         if tile is not None:
             with tile.lock:
                 tile.saved_version = max(tile.saved_version, version)

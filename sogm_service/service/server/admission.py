@@ -59,7 +59,7 @@ class Admission:
         self.resolution = config.map.resolution
         self.tile_size = config.map.tile_size
         self.span = config.map.resolution * config.map.tile_size
-        self._has_store = config.storage.directory is not None
+        self._has_store = config.storage.directory is not None or config.store.url is not None
         self._budget = int(config.storage.memory_budget_mb * 1e6)
         # With a store: whether its writer is saturated (then nothing more can be evicted and
         # new tiles are priced as without a store).  Set by the pipeline.

@@ -147,7 +147,7 @@ class LayerDrop:
         self.tiles.checkpoint()
         flushed = writer.flush(FLUSH_TIMEOUT_S)
         known = self.tiled.known_tiles()
-        for index in emptied:
-            if index not in known:  # not written again since (a new ISM there)
+        for index in emptied:  # the flush may have written a snapshot taken before the drop
+            if index not in known:  # not started again since (a new ISM there)
                 store.remove(*index)
         return flushed and writer.stats.errors == errors

@@ -113,3 +113,18 @@ def test_drops_racing_fuses_leave_no_orphan_planes_and_robot1_intact() -> None:
     assert m.resident_bytes() == sum(t.nbytes for t in m.tiles.values())
     assert np.array_equal(window(m, ["robot1/laser"]), before)
     assert len(names) == 1 + 51  # robot1's, then robot2's started again 50 times
+
+
+def test_a_snapshot_saved_after_its_tile_left_does_not_bring_it_back() -> None:
+    """The writer confirms a snapshot taken before the drop emptied the tile (or before a
+    discard): the map does not count the tile as stored again (the caller removes the file)."""
+    m = fused_map()
+    version = m.tiles[(2, 0)].version
+    m.drop_layers(["robot2/laser"])  # (2, 0) held robot2 alone
+    m.mark_saved((2, 0), version)
+    assert (2, 0) not in m.known_tiles()
+    m.discard((0, 0))
+    m.mark_saved((0, 0), 1)
+    assert (0, 0) not in m.known_tiles()
+    m.mark_saved((1, 0), m.tiles[(1, 0)].version)  # a resident tile: stored and clean
+    assert (1, 0) in m.stored and not m.tiles[(1, 0)].dirty
