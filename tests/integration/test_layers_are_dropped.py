@@ -50,7 +50,7 @@ def sections(tmp_path: Path, bucket: dict[str, Any] | None = None,
     return out
 
 
-@pytest.fixture(params=["directory", "s3"])
+@pytest.fixture(params=["directory", pytest.param("s3", marks=pytest.mark.slow)])
 def bucket(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch,
            ) -> dict[str, Any] | None:
     """None: a store directory; else a fresh prefix of the SeaweedFS test bucket (the AWS
