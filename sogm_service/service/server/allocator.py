@@ -17,7 +17,7 @@ returns (a server with a 64 MB budget stayed at 555 MB RSS after a burst, its he
 holes).  :func:`give_back` (``malloc_trim(0)``, which releases the free pages inside every
 arena, not only at its top) returns them: the checkpoint thread calls it once evicted tiles
 are written (:meth:`~sogm_service.service.server.checkpoints.Checkpointer.give_back_memory`),
-and the same server went down to 174 MB.  It runs without the GIL and takes 0.5-30 ms (the
+and the same server went down to 174-203 MB.  It runs without the GIL and takes 0.5-30 ms (the
 more free pages, the longer).
 
 Only the entry points of long-running processes call this (``serve``, ``demo``, ``replay``,
