@@ -142,3 +142,27 @@ def test_cli_init_add_renew_and_refusals(tmp_path: Path, capsys: pytest.CaptureF
                  "bad_manifest"):
         assert code in err
     assert not (tmp_path / "a").exists()
+
+
+def test_operators_may_drop_any_layers_robots_their_own(tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str],
+                                                        ) -> None:
+    d = tmp_path / "pki"
+    assert certs.main(["init", str(d), "--server", "srv", "--robot", "r1", "--viewer", "v",
+                       "--operator", "ops"]) == 0
+    assert "operator ops" in capsys.readouterr().out
+    assert certs.main(["add", str(d), "--operator", "ops2"]) == 0
+    acl = config_dict(d / "srv.json5")["access_control"]
+    rules = {r["id"]: r for r in acl["rules"]}
+    policies = {p["id"]: p for p in acl["policies"]}
+    subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert subjects["operators"] == ["ops", "ops2"]
+    assert rules["operator-drop"]["key_exprs"] == ["sogm/default/drop/**"]
+    assert rules["robot-r1-drop"]["key_exprs"] == ["sogm/default/drop/r1/**"]
+    assert {"operator-drop", "operator-drop-reply", "drop-decl"} <= \
+        set(policies["operators"]["rules"])
+    assert not any("drop" in rid for rid in policies["viewers"]["rules"])
+    assert config_dict(d / "ops2.json5")["mode"] == "client"
+    assert certs.main(["remove", str(d), "ops"]) == 0
+    acl = config_dict(d / "srv.json5")["access_control"]
+    assert {s["id"]: s["cert_common_names"] for s in acl["subjects"]}["operators"] == ["ops2"]
