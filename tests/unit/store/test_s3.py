@@ -207,3 +207,22 @@ def test_tiles_ls_export_and_import_on_a_url(s3env: Any, tmp_path: Path) -> None
     assert code == 1 and "BAD" in text and "3 tile(s), 1 bad" not in text
     code, text = _tiles(["ls", f"s3://no-such-bucket-{base}/x", *ep])
     assert code == 2
+
+
+def test_the_store_settings(tmp_path: Path) -> None:
+    """``[store] url`` and ``endpoint_url`` as written; with ``[storage] directory`` too, or
+    a URL that is not s3://bucket/prefix, the config is refused."""
+    from sogm_service.service.config import load_config
+
+    good = tmp_path / "good.toml"
+    good.write_text('[store]\nurl = "s3://sogm-tiles/site-a"\n'
+                    'endpoint_url = "http://127.0.0.1:8333"\n')
+    config = load_config(good)
+    assert (config.store.url, config.store.endpoint_url) == ("s3://sogm-tiles/site-a",
+                                                            "http://127.0.0.1:8333")
+    for bad in ('[store]\nurl = "s3://sogm-tiles/p"\n[storage]\ndirectory = "/tmp/t"\n',
+                '[store]\nurl = "/var/lib/tiles"\n', '[store]\nendpoint_url = "127.0.0.1"\n'):
+        path = tmp_path / "bad.toml"
+        path.write_text(bad)
+        with pytest.raises(ConfigError):
+            load_config(path)
