@@ -25,8 +25,9 @@ reach each way).  Without the bound a run of cells of one bin (a one-cell wall) 
 cell by cell along its length by whichever supercell reaches it first, and one supercell rings
 a whole room; with it a wall is cut into pieces of at most ``extent`` blocks.  The bound costs
 boundary recall where long supercells had traced an object's outline: on the table-top scenes
-at 16-cell blocks 0.90 at ``extent`` 3, 0.94 at 4 and 0.98 unbounded (SEEDS 0.93); 4 keeps
-the room maps' undersegmentation at SEEDS's (``sogm-service eval supercells``).
+at 16-cell blocks 0.90 at ``extent`` 3, 0.93 at 4 and 0.98 unbounded (SEEDS 0.93, with a tenth
+fewer superpixels); 4 keeps the room maps' undersegmentation at SEEDS's
+(``sogm-service eval supercells``).
 
 **State per supercell (Eq. 9-10).**  One K-bin histogram per semantic layer, ``hist[c, n, k]``
 (bin ``k`` covers probabilities ``[k/K, (k+1)/K)``, the last bin includes 1), never the joint
@@ -65,7 +66,7 @@ a cell can go back and forth between two supercells; the sweeps simply stop afte
 is 6-10x SEEDS's.  The energy rule converges (every move lowers E) and follows boundaries: on
 those maps it matches SEEDS's undersegmentation at SEEDS's boundary recall.  It is therefore
 the default, with ``gamma`` 0 (the contour term fights the one-cell pieces a thin wall needs:
-at 0.01 the error is 1.1-1.6x SEEDS's, at 0.05 2-5x) and the extent bound for compactness
+at 0.01 the error is 1.0-1.4x SEEDS's, at 0.05 2-5x) and the extent bound for compactness
 instead.  The zero-variance
 rule applies to both.
 
