@@ -143,7 +143,7 @@ def serve(args: argparse.Namespace) -> int:
 
 def _run_server(config: Any) -> int:
     from sogm_service.service.server.server import MapServer
-    from sogm_service.wire.errors import StoreLockedError
+    from sogm_service.wire.errors import StoreLockedError, StoreUnavailableError
 
     stop = stop_on_signal()
     server = MapServer(config)
@@ -154,6 +154,9 @@ def _run_server(config: Any) -> int:
         holder = f"pid {exc.pid}" if exc.pid is not None else "another process"
         return fail("serve", f"store {exc.directory} is locked by {holder}; one server per "
                              "store directory")
+    except StoreUnavailableError as exc:  # an object store's endpoint, bucket or credentials
+        server.stop()
+        return fail("serve", exc.message)
     except BaseException:
         server.stop()
         raise

@@ -57,7 +57,12 @@ from sogm_service.core.geometry import TileLattice
 from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.store.format import read_tile_file, read_tile_header
 from sogm_service.store.protocol import TileStore
-from sogm_service.wire.errors import ConfigError, StoreLockedError, TileFormatError
+from sogm_service.wire.errors import (
+    ConfigError,
+    StoreLockedError,
+    StoreUnavailableError,
+    TileFormatError,
+)
 from sogm_service.wire.tilefile import SUFFIX, MapKey, StoredTile, TileHeader, tile_from_bytes
 
 _CELL_EPS = 1e-9
@@ -147,7 +152,7 @@ def run_tiles(args: argparse.Namespace, out: TextIO | None = None) -> int:
     handler = {"ls": cmd_ls, "export": cmd_export, "import": cmd_import}[args.tiles_command]
     try:
         return handler(args, out)
-    except (UsageError, StoreLockedError, ConfigError) as exc:
+    except (UsageError, StoreLockedError, StoreUnavailableError, ConfigError) as exc:
         words = getattr(args, "command_words", f"tiles {args.tiles_command}")
         return fail(words, str(exc))
     except Exception as exc:

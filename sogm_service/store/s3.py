@@ -41,7 +41,7 @@ from sogm_service.store.s3objects import (
     error_code,
     s3_client,
 )
-from sogm_service.wire.errors import StoreConflictError, TileFormatError
+from sogm_service.wire.errors import StoreConflictError, StoreUnavailableError, TileFormatError
 from sogm_service.wire.tilefile import (
     DEFAULT_LEVEL,
     MAX_APPLIED,
@@ -137,11 +137,15 @@ class S3Store:
         """List the map's objects and check every tile header (one ranged GET each)."""
         e = self.expect
         found: dict[TileIndex, TileFileInfo] = {}
-        for key, size, _ in self.objects.list(_file_stem(e.map_name, e.resolution,
-                                                         e.tile_size) + "_"):
-            info = self._index_one(key, size)
-            if info is not None:
-                found[info.header.index] = info
+        try:
+            for key, size, _ in self.objects.list(_file_stem(e.map_name, e.resolution,
+                                                             e.tile_size) + "_"):
+                info = self._index_one(key, size)
+                if info is not None:
+                    found[info.header.index] = info
+        except Exception as exc:  # endpoint, bucket, credentials: say which store and why
+            raise StoreUnavailableError(f"tile store {self.url} cannot be listed: "
+                                        f"{exc}") from exc
         with self._lock:
             self._index = found
             return dict(found)

@@ -149,6 +149,14 @@ class StoreLockedError(SogmError, RuntimeError):
         self.pid = pid
 
 
+class StoreUnavailableError(SogmError, RuntimeError):
+    """The tile store cannot be reached or read (an object store's endpoint, bucket or
+    credentials): the server does not start without the map it would serve."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__("store_unavailable", message)
+
+
 class StoreConflictError(SogmError, RuntimeError):
     """A tile write refused by a shared store: the stored tile changed since this server last
     saw it and holds an ISM this server's copy lacks (another server owns it now)."""

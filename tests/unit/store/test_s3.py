@@ -6,12 +6,16 @@ it.  Credentials reach boto3 through the AWS environment, as on a site."""
 from __future__ import annotations
 
 import io
+import os
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from sogm_service.client.session import free_tcp_endpoint
 from sogm_service.store.directory import DirectoryStore
 from sogm_service.store.s3 import S3Store, holds_all
 from sogm_service.store.s3objects import S3Location, s3_client
@@ -226,3 +230,16 @@ def test_the_store_settings(tmp_path: Path) -> None:
         path.write_text(bad)
         with pytest.raises(ConfigError):
             load_config(path)
+
+
+def test_serve_on_a_bucket_it_cannot_list_refuses_in_one_line(s3env: Any,
+                                                              tmp_path: Path) -> None:
+    config = tmp_path / "c.toml"
+    config.write_text(f'[store]\nurl = "s3://no-such-bucket-{s3env.new_prefix()}/x"\n'
+                      f'endpoint_url = "{s3env.endpoint_url}"\n'
+                      f'[zenoh]\nlisten = ["{free_tcp_endpoint()}"]\n')
+    done = subprocess.run([sys.executable, "-m", "sogm_service", "serve", "--config",
+                           str(config)], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, **s3env.env})
+    assert done.returncode == 2
+    assert "cannot be listed" in done.stderr and "Traceback" not in done.stderr
