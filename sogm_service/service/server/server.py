@@ -12,10 +12,10 @@ docs/architecture.md#7-queries-never-wait-behind-ingestion):
 * Queries run on Zenoh's query threads: request -> sampling -> reply
   (:mod:`sogm_service.service.server.queries`).  Zenoh's receive runtime gets
   ``[limits] rx_threads`` threads, so the ISM links a lossless push-back holds leave others to
-  read queries (:func:`~sogm_service.service.server.ingest.reserve_rx_threads`).  They take no map-wide lock: a tile is locked only
-  while its block is copied or one ISM's patch is added to it
-  (:mod:`sogm_service.core.map.tiles`), so a query never waits for the ingestion backlog, nor
-  even for one whole ISM.
+  read queries (:func:`~sogm_service.service.server.ingest.reserve_rx_threads`).  They take
+  no map-wide lock: a tile is locked only while its block is copied or one ISM's patch is
+  added to it (:mod:`sogm_service.core.map.tiles`), so a query never waits for the ingestion
+  backlog, nor even for one whole ISM.
 * Checkpoints, eviction (:mod:`~sogm_service.service.server.checkpoints`), the fleet's tiles
   (:mod:`~sogm_service.service.server.fleet`) and whole-tile replication
   (:mod:`~sogm_service.service.cluster.replication`) are parts this class wires to the session.
