@@ -80,3 +80,25 @@ def test_a_reply_frame_is_bounded_by_the_askers_limit() -> None:
     with pytest.raises(DecodeError) as err:
         zstd.decompress_at_most(frame, 999)
     assert err.value.code == "too_large"
+
+
+def test_threads_compress_at_once() -> None:
+    """A zstd compressor shared by threads crashes the process; each thread has its own."""
+    import threading
+
+    blobs = [np.random.default_rng(k).integers(0, 4, 1 << 19, dtype=np.uint8).tobytes()
+             for k in range(4)]
+    out: list[list[bytes]] = [[] for _ in blobs]
+
+    def work(k: int) -> None:
+        for _ in range(100):
+            out[k].append(zstd.compress(blobs[k]))
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(len(blobs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for k, frames in enumerate(out):
+        assert len(frames) == 100
+        assert zstd.decompress(frames[-1], len(blobs[k])) == blobs[k]
