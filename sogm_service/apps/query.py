@@ -24,6 +24,9 @@ from sogm_service.apps.options import (
     subcommands,
     yaw,
 )
+from sogm_service.core.sevds.segment import SevdsParams
+
+_SEVDS = SevdsParams()  # the supercells query's defaults
 
 EPILOG = """examples:
   sogm-service query submap --x 2 --y 1 --yaw-deg 30 --width 6 --height 4 --png sub.png
@@ -101,18 +104,20 @@ def _output_args(p: argparse.ArgumentParser) -> None:
 
 def _sevds_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("SEVDS parameters (paper Eq. 7-10)")
-    g.add_argument("--block-size", type=int, default=8, metavar="CELLS",
+    g.add_argument("--block-size", type=int, default=_SEVDS.block_size, metavar="CELLS",
                    help="edge of the initial square supercells (cells)")
-    g.add_argument("--levels", type=int, default=3, metavar="N",
+    g.add_argument("--levels", type=int, default=_SEVDS.levels, metavar="N",
                    help="block levels (each halves the block) before cell moves")
-    g.add_argument("--bins", type=int, default=5, metavar="N",
+    g.add_argument("--bins", type=int, default=_SEVDS.bins, metavar="N",
                    help="histogram bins per layer (probability quantisation)")
-    g.add_argument("--iterations", type=int, default=4, metavar="N", help="cell-level sweeps")
-    g.add_argument("--gamma", type=float, default=0.01,
+    g.add_argument("--iterations", type=int, default=_SEVDS.iterations, metavar="N",
+                   help="cell-level sweeps")
+    g.add_argument("--gamma", type=float, default=_SEVDS.gamma,
                    help="weight of the boundary term, unitless (smoother borders when larger)")
-    g.add_argument("--criterion", default="distribution", choices=["distribution", "energy"],
-                   help="distribution: summed histogram variance (SEVDS); energy: SEEDS's "
-                        "histogram energy")
+    g.add_argument("--criterion", default=_SEVDS.criterion, choices=["distribution", "energy"],
+                   help="energy (the default): a move must lower the total squared deviation "
+                        "(+ gamma x perimeter) of both supercells; distribution: the paper's "
+                        "rule, the receiver's summed histogram variance")
 
 
 def open_client(args: argparse.Namespace) -> Any:
