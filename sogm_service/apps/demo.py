@@ -46,6 +46,8 @@ class DemoResult:
     moving: dict[str, Any] = field(default_factory=dict)  # the forgetting person layer
     isms_dropped_offline: int = 0  # by the robots' offline policy during drop-outs
     isms_lost_in_flight: int = 0  # sent as a link went, never received (by the server's acks)
+    layer_mode: str = "shared"  # or per_robot: each robot its layers, read by class patterns
+    classes: dict[str, Any] = field(default_factory=dict)  # class -> its entry, its layers
 
     @property
     def complete(self) -> bool:
@@ -94,6 +96,10 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--secure", action="store_true",
                    help="run everything through a fresh dev PKI (DIR/pki): mutual TLS and the "
                         "access-control rules of 'sogm-service certs', one identity per robot")
+    p.add_argument("--per-robot-layers", action="store_true",
+                   help="every robot writes its own layers (<robot>/<sensor>/<class>, named "
+                        "by the server from the key); the demo reads each class through the "
+                        "pattern */*/<class>")
     p.set_defaults(handler=run)
 
 
@@ -113,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
                       realtime=not args.fast, speed=args.speed, progress=not args.quiet,
                       secure=args.secure, view=args.http if args.view else None,
                       zenoh_config=args.zenoh_config, map_name=args.map,
-                      compression=None if args.compression == "none" else "zstd")
+                      compression=None if args.compression == "none" else "zstd",
+                      per_robot_layers=args.per_robot_layers)
     _print_summary(result, args.out)
     return 0 if result.complete else 1
 
@@ -122,7 +129,8 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
              rate_hz: float = 4.0, seed: int = 0, out: Path = Path("demo-out"),
              realtime: bool = True, speed: float = 3.0, progress: bool = True,
              secure: bool = False, view: str | None = None, zenoh_config: Path | None = None,
-             map_name: str = "demo", compression: Compression | None = "zstd") -> DemoResult:
+             map_name: str = "demo", compression: Compression | None = "zstd",
+             per_robot_layers: bool = False) -> DemoResult:
     """Run the whole demo; returns its summary (and writes every file into ``out``).
 
     ``secure``: a fresh dev PKI in ``out/pki`` (:func:`sogm_service.apps.certs.init_pki`); the
@@ -131,7 +139,10 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
     ``view``: serve the live viewer on that ``HOST:PORT`` during the run, and after it until
     SIGINT/SIGTERM.  ``zenoh_config``: no embedded server; the robots and the demo's client
     open their sessions from that file (as it is) and drive a running server's map
-    ``map_name``.  ``compression``: the fleet's ISMs and the demo's queries (``None``: raw)."""
+    ``map_name``.  ``compression``: the fleet's ISMs and the demo's queries (``None``: raw).
+    ``per_robot_layers``: :mod:`sogm_service.apps.demo_layers`."""
+    from sogm_service.apps.demo_layers import DemoLayers
+    from sogm_service.apps.demo_person import PERSON_LAYER
     from sogm_service.client.mapclient import MapClient
     from sogm_service.client.session import free_tcp_endpoint
     from sogm_service.service.server.server import MapServer
@@ -148,6 +159,9 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
         zenoh = {"config_file": str(configs["server"])}
     from sogm_service.apps.demo_person import forgetting_config
 
+    naming = DemoLayers(per_robot_layers)
+    person = naming.entry(PERSON_LAYER)  # the forget rule, the keepout and its readers
+
     server: Any
     if zenoh_config is not None:  # a running server: every session from the file
         configs = {f"robot{i + 1}": zenoh_config for i in range(robots)}
@@ -155,22 +169,29 @@ def run_demo(*, world: str = "warehouse", robots: int = 3, duration_s: float = 6
         server = _Remote(map_name, zenoh_config)
     else:
         server = MapServer(forgetting_config(_config(w.geometry.resolution, zenoh, out),
-                                             w)).start()
+                                             w, person)).start()
     viewer = None
     try:
         if view is not None:
-            viewer = _start_viewer(endpoint, view, configs.get("viewer"), map_name)
+            viewer = _start_viewer(endpoint, view, configs.get("viewer"), map_name, person)
         with MapClient.connect(endpoint, map_name=map_name, timeout=10.0,
                                zenoh_config=configs.get("viewer")) as client:
             client.compression = compression
             watcher = _FleetWatcher(client, out / "tile_events.log")
+            from sogm_service.apps.demo_person import KeepoutTimeline
+
+            keepout = KeepoutTimeline(client, w, time.time(), person=person).start()
             fleet = _drive(w, endpoint, robots, duration_s, rate_hz, seed, realtime, speed,
-                           server, progress, configs, compression, map_name)
+                           server, progress, configs, compression, map_name, per_robot_layers)
+            timeline = keepout.stop()
             if isinstance(server, _Remote):
                 server.wait_idle(60.0, published=fleet.isms_sent - fleet.isms_lost)
             else:
                 server.wait_idle(timeout=60.0)
-            result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out)
+            result = _report(client, server, w, watcher, fleet, world, robots, duration_s, out,
+                             naming)
+            if result.moving:
+                result.moving["keepout_timeline"] = timeline  # (simulated s, cells, m)
             watcher.close()
         if viewer is not None:
             print(f"sogm-service demo: done; the map stays at {viewer.url} until Ctrl-C",
@@ -215,10 +236,11 @@ class _Remote:
 
 
 def _start_viewer(endpoint: str, http: str, zenoh_config: Path | None,
-                  map_name: str = "demo") -> Any:
+                  map_name: str, person: str) -> Any:
     from sogm_service.apps.viewer import start_viewer
 
-    args = ["--connect", endpoint, "--map", map_name, "--http", http]
+    args = ["--connect", endpoint, "--map", map_name, "--http", http,
+            "--keepout", person]  # the view 'keepout mask' follows the person
     if zenoh_config is not None:
         args += ["--zenoh-config", str(zenoh_config)]
     viewer = start_viewer(args)
@@ -294,7 +316,7 @@ class _FleetWatcher:
 def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: float,
            seed: int, realtime: bool, speed: float, server: Any, progress: bool,
            configs: dict[str, Path], compression: Compression | None = "zstd",
-           map_name: str = "demo") -> Any:
+           map_name: str = "demo", per_robot_layers: bool = False) -> Any:
     """Run the fleet in a thread while a progress bar shows the server's view."""
     from sogm_service.sim.fleet import run_fleet
 
@@ -308,7 +330,8 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
                                  zenoh_configs=configs or None,
                                  sensors=demo_sensors(world),
                                  observers=demo_observers(world),
-                                 compression=compression, map_name=map_name)
+                                 compression=compression, map_name=map_name,
+                                 per_robot_layers=per_robot_layers)
 
     thread = threading.Thread(target=fleet, name="demo-fleet")
     t0 = time.monotonic()
@@ -335,14 +358,17 @@ def _drive(world: Any, endpoint: str, robots: int, duration_s: float, rate_hz: f
 
 
 def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet: Any,
-            world_name: str, robots: int, duration_s: float, out: Path) -> DemoResult:
-    from sogm_service.apps.demo_person import MOVING_LAYERS, report_moving
+            world_name: str, robots: int, duration_s: float, out: Path,
+            naming: Any) -> DemoResult:
+    from sogm_service.apps.demo_layers import label
+    from sogm_service.apps.demo_person import MOVING_LAYERS, PERSON_LAYER, report_moving
     from sogm_service.apps.demo_pictures import (
         class_iou,
         ground_truth_image,
         obstacle_layers,
         robot_markers,
         robot_submaps,
+        world_window,
         write_fused,
         write_layers,
         write_supercells,
@@ -350,9 +376,9 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
 
     files: list[str] = []
     info = client.info()
-    moving = report_moving(client, world, out, files, duration_s)
-    layers = [n for n in info.layers if n not in MOVING_LAYERS]  # reported on their own
-    full = _world_window(world)
+    moving = report_moving(client, world, out, files, duration_s, naming.entry(PERSON_LAYER))
+    layers = naming.entries(info.layers, skip=MOVING_LAYERS)  # the person: on its own
+    full = world_window(world)
     sub = client.submap(**full, layers=layers, encoding="prob_f32")
     markers = robot_markers(watcher)
     files += write_layers(sub, out, markers)
@@ -360,7 +386,8 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
     from sogm_service.apps.render import class_legend, save_map_png
 
     save_map_png(out / "ground_truth.png", ground_truth_image(world, layers), world.geometry,
-                 title="ground truth (the simulator's world)", legend=class_legend(layers),
+                 title="ground truth (the simulator's world)",
+                 legend=class_legend([label(n) for n in layers]),
                  robots=markers)
     files.append("ground_truth.png")
     latency = robot_submaps(client, watcher, world.geometry.resolution, out, files, layers)
@@ -372,15 +399,9 @@ def _report(client: Any, server: Any, world: Any, watcher: _FleetWatcher, fleet:
         tile_switches=watcher.events, layers=layers,
         iou=class_iou(world, layers, sub.probabilities()), submap_latency_ms=latency,
         files=sorted(files), supercells=supercells, moving=moving,
-        isms_dropped_offline=fleet.isms_dropped, isms_lost_in_flight=fleet.isms_lost)
-
-
-def _world_window(world: Any) -> dict[str, Any]:
-    g = world.geometry
-    w, h = g.size_m
-    x, y = g.centre()
-    return dict(x=x, y=y, yaw=g.origin.yaw, width=w, height=h,
-                resolution=g.resolution)
+        isms_dropped_offline=fleet.isms_dropped, isms_lost_in_flight=fleet.isms_lost,
+        layer_mode=naming.mode, classes=naming.summary(
+            layers + ([moving["layer"]] if moving else []), client.info().layers))
 
 
 def _print_summary(r: DemoResult, out: Path) -> None:
@@ -396,6 +417,9 @@ def _print_summary(r: DemoResult, out: Path) -> None:
         print(f"  incomplete: the server fused {r.isms_fused} of the "
               f"{r.isms_published - r.isms_dropped_offline - r.isms_lost_in_flight} "
               "ISMs it was sent")
+    if r.layer_mode == "per_robot":
+        print("  per-robot layers, read by class: " + ", ".join(
+            f"{c['entry']} ({len(c['members'])} layers)" for c in r.classes.values()))
     print("  per-class IoU (observed cells): " +
           ", ".join(f"{k} {v:.2f}" for k, v in r.iou.items()))
     if r.submap_latency_ms:
@@ -410,4 +434,14 @@ def _print_summary(r: DemoResult, out: Path) -> None:
               f"{m['occupied_cells']} cells occupied now"
               + (f", last walked {age:.0f} s ago at most" if age is not None else "")
               + f"; highest p {m['p_max_now']:.2f}")
+        k_age = m.get("keepout_oldest_age_s")
+        print(f"  nav2 keepout of the person: {m['keepout_cells']} cells now"
+              + (f", where it walked {k_age:.0f} s ago at most (older spots faded)"
+                 if k_age is not None else ""))
+        seen = [(t, n, d) for t, n, d in m.get("keepout_timeline", []) if n]
+        if seen:
+            far = max(d for _, _, d in seen if d is not None)
+            print(f"    kept out from {seen[0][0]:.0f} s to {seen[-1][0]:.0f} s (simulated), "
+                  f"at most {max(n for _, n, _ in seen)} cells, their centre within "
+                  f"{far:.1f} m of the person")
     print(f"  wrote {len(r.files)} files and summary.json to {out}/")
