@@ -26,6 +26,10 @@ server and talks to it through callbacks:
   DROP for KEEP_LAST): maps are megabytes, are only sent when they change, and a dropped one
   would not come again until the next change.
   Attachments carry a sequence number from 1 per publisher, the time and the publisher's gid.
+* nav2's filter masks (the snapshot's ``masks``, :mod:`sogm_service.adapters.ros2.filters`):
+  ``/sogm/<map>/keepout_mask`` and ``speed_mask`` through the same path (whole at every change
+  with ``whole_masks``, else with ``_updates``), each with its latched
+  ``nav2_msgs/msg/CostmapFilterInfo`` on ``<mask>_filter_info``, sent again only if it changes.
 * ``nav_msgs/srv/GetMap`` on ``/sogm/<map>/get_map``: a complete queryable; the reply carries
   the CDR response and an attachment echoing the request's sequence number and client gid.
 * Liveliness tokens for the node and each endpoint, so ``ros2 node list`` / ``ros2 topic
