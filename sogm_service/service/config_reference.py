@@ -34,8 +34,8 @@ DEPLOY_FILE = Path("deploy/sogm-service.toml")
 REPO_ROOT = Path(__file__).resolve().parents[2]
 REGENERATE = "python -m sogm_service.service.config_reference"
 
-_ORDER = ("map", "ism", "ism.matching", "tiles", "storage", "store", "limits", "ros2", "cluster",
-          "zenoh")
+_ORDER = ("map", "ism", "ism.matching", "tiles", "storage", "store", "limits", "ros2", "nav2",
+          "cluster", "zenoh")
 """The sections in the order the pages list them (the models' own order puts zenoh earlier)."""
 
 

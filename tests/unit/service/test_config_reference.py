@@ -31,7 +31,7 @@ def test_checked_in_page_is_the_rendered_one() -> None:
 def test_sections_are_every_table_of_the_config_in_the_documented_order() -> None:
     headers = [s.header for s in ref.sections()]
     assert headers == ["[map]", "[[ism]]", "[ism.matching]", "[tiles]", "[storage]", "[store]",
-                       "[limits]", "[ros2]", "[cluster]", "[zenoh]", "top-level fields"]
+                       "[limits]", "[ros2]", "[nav2]", "[cluster]", "[zenoh]", "top-level fields"]
     top = {name for name, _ in ref.Section("", ServiceConfig, False).fields()}
     assert top == {"pose_keys", "prefix", "log_level"}
 
