@@ -10,11 +10,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from sogm_service.apps.demo_layers import label
+
 PNG_LAYER_LIMIT = 16
 
 
 def class_iou(world: Any, layers: list[str], probs: npt.NDArray[np.float32]) -> dict[str, float]:
-    """Per layer: IoU of ``p > 0.5`` against the ground truth, over the cells it observed.
+    """Per layer: IoU of ``p > 0.5`` against the ground truth, over the cells it observed
+    (keyed by :func:`~sogm_service.apps.demo_layers.label`: a class pattern by its class).
 
     ``obstacle`` (the laser's layer) is compared with everything standing on the floor; a
     camera class with the world's class of that name.  Unobserved cells (log-odds 0) are left
@@ -34,8 +37,16 @@ def class_iou(world: Any, layers: list[str], probs: npt.NDArray[np.float32]) -> 
         pred = (p > 0.5) & seen
         gt = truth & seen
         union = np.count_nonzero(pred | gt)
-        out[layer] = round(float(np.count_nonzero(pred & gt) / union), 4) if union else 0.0
+        out[label(layer)] = round(float(np.count_nonzero(pred & gt) / union), 4) if union else 0.0
     return out
+
+
+def world_window(world: Any) -> dict[str, Any]:
+    """The query window of the whole world, at the map's resolution."""
+    g = world.geometry
+    w, h = g.size_m
+    x, y = g.centre()
+    return dict(x=x, y=y, yaw=g.origin.yaw, width=w, height=h, resolution=g.resolution)
 
 
 def robot_markers(watcher: Any) -> list[tuple[str, float, float, float | None]]:
@@ -48,10 +59,11 @@ def write_layers(sub: Any, out: Path, robots: list[Any]) -> list[str]:
     p = sub.probabilities()
     files = []
     for k, layer in enumerate(sub.layers[:PNG_LAYER_LIMIT]):
-        name = f"layer_{layer.replace('/', '_')}.png"
+        name = f"layer_{label(layer).replace('/', '_')}.png"
         save_grid_png(out / name, p[k], sub.geometry, title=f"layer {layer}", robots=robots)
         files.append(name)
-    save_classes_png(out / "classes.png", p, sub.geometry, list(sub.layers), robots=robots)
+    save_classes_png(out / "classes.png", p, sub.geometry, [label(n) for n in sub.layers],
+                     robots=robots)
     files.append("classes.png")
     return files
 
@@ -106,7 +118,8 @@ def robot_submaps(client: Any, watcher: Any, map_res: float, out: Path,
             sub = client.submap(**window, layers=layers, encoding="prob_u8")
             timings.append(time.perf_counter() - t0)
         save_classes_png(out / f"submap_{robot}.png", sub.probabilities(), sub.geometry,
-                         list(sub.layers), title=f"sub-map around {robot}", robots=robots)
+                         [label(n) for n in sub.layers], title=f"sub-map around {robot}",
+                         robots=robots)
         files.append(f"submap_{robot}.png")
     if not timings:
         return {}

@@ -7,9 +7,11 @@ mode, multicast scouting off, to the map server's endpoint, e.g. ``tcp/127.0.0.1
 
 * its reported pose on ``pose/<robot>`` (:class:`~sogm_service.wire.messages.PoseMessage`);
 * each sensor ISM on ``ism/<robot>/<sensor>/<class>``
-(:class:`~sogm_service.wire.messages.IsmMessage`)
-  with ``layer`` set to the class, so that every robot's ISMs of one class fuse into one map
-  layer (the server would otherwise name the layer after the key's remainder).
+  (:class:`~sogm_service.wire.messages.IsmMessage`) with ``layer`` set to the class, so that
+  every robot's ISMs of one class fuse into one map layer; with ``per_robot_layers`` it sends
+  no ``layer`` and the server names the layer after the key's remainder
+  (``<robot>/<sensor>/<class>``): every robot its own layers, which a class pattern
+  (``*/*/<class>``) reads as one.
 
 A robot whose link drops keeps publishing: while its ISM keys have no route to a server, its
 client keeps the latest ISM per key and drops the rest (:mod:`sogm_service.client.offline`),
@@ -99,8 +101,10 @@ class RobotLink:
     def __init__(self, name: str, endpoint: str, *, ism_prefix: str = "ism",
                  pose_prefix: str = "pose", encoding: str = "occupancy_i8",
                  frame: str = "map", zenoh_config: Path | None = None,
-                 compression: Compression | None = ZSTD, map_name: str = "default") -> None:
+                 compression: Compression | None = ZSTD, map_name: str = "default",
+                 per_robot_layers: bool = False) -> None:
         self.name = name
+        self.per_robot_layers = per_robot_layers  # no explicit layer: the key names it
         # The map's name: the offline policy asks this map's acks about ISMs on a lost link.
         self.client = MapClient.connect(endpoint, map_name=map_name, zenoh_config=zenoh_config)
         self.client.compression = compression  # None: raw ISMs (a baseline, older servers)
@@ -124,7 +128,8 @@ class RobotLink:
         msg = self.client.publish_ism(
             ism_key(self.name, ism, self.ism_prefix), encode_cells(ism.prob, self.encoding),
             resolution=ism.geometry.resolution, origin=ism.geometry.origin,
-            encoding=self.encoding, layer=ism.layer, frame=self.frame, stamp=stamp,
+            encoding=self.encoding, layer=None if self.per_robot_layers else ism.layer,
+            frame=self.frame, stamp=stamp,
             robot=self.name)
         stats.isms += 1
         stats.ism_bytes += len(msg.data)
@@ -158,7 +163,7 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
               zenoh_configs: Mapping[str, Path] | None = None,
               observers: Sequence[Callable[[SimStep], list[SensorIsm]]] = (),
               compression: Compression | None = ZSTD, flush_s: float = 5.0,
-              map_name: str = "default") -> FleetStats:
+              map_name: str = "default", per_robot_layers: bool = False) -> FleetStats:
     """Drive a simulated fleet and publish it to the map server at ``endpoint``.
 
     ``speed`` is simulated seconds per wall second when ``realtime`` (3.0: three times faster).
@@ -171,7 +176,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
     (e.g. :class:`sogm_service.sim.moving.PersonDetector`).  ``compression``: how the robots
     send their ISMs (zstd, or ``None`` for raw).  ``flush_s``: how long each robot waits at
     the end for a route for the ISMs it still holds after a drop-out.  ``map_name``: the
-    server's map (the robots ask its acks).  Blocks until done.
+    server's map (the robots ask its acks).  ``per_robot_layers``: the ISMs carry no ``layer``,
+    so the server names each after its key (``<robot>/<sensor>/<class>``).  Blocks until done.
     """
     names = [f"robot{i + 1}" for i in range(robots)]
     links: dict[str, RobotLink] = {}
@@ -183,7 +189,8 @@ def run_fleet(world: World, endpoint: str, *, robots: int = 3, duration_s: float
             links[name] = RobotLink(name, endpoint, ism_prefix=ism_prefix,
                                     pose_prefix=pose_prefix, encoding=encoding,
                                     zenoh_config=(zenoh_configs or {}).get(name),
-                                    compression=compression, map_name=map_name)
+                                    compression=compression, map_name=map_name,
+                                    per_robot_layers=per_robot_layers)
         for step in simulate(world, robots, duration_s, rate_hz, seed, odom_noise=odom_noise,
                              sensors=sensors):
             if stop is not None and stop.is_set():
