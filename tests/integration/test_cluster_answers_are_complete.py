@@ -2,13 +2,14 @@
 own store directory) behind ``sogm-service router``, and one plain server of another map name
 fed the same ISMs.  Once ingestion has settled, a sub-map of the whole area at a coarser
 resolution than the map's (the coarse path, which reads only the cells its warp interpolates
-from) and a fused window, asked through the router and through each member by its id, equal
-the plain server's bit for bit: a member that does not own a tile fetches it from its owners,
-and never answers it as unknown.
+from), a fused window and the supercells of the area, asked through the router and through
+each member by its id, equal the plain server's bit for bit: a member that does not own a
+tile fetches it from its owners, and never answers it as unknown.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,9 @@ from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import free_tcp_endpoint
 from sogm_service.core.geometry import Pose2D
 from sogm_service.wire import codec
+from sogm_service.wire.errors import ServiceError
 from sogm_service.wire.keys import MapKeys
-from sogm_service.wire.queries import GridReply
+from sogm_service.wire.queries import GridReply, SupercellReply
 from tests.conftest import ServerProcess, start_server, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -100,6 +102,20 @@ def served_tiles(client: MapClient) -> dict[str, set[tuple[int, int]]]:
     return out
 
 
+def supercells(client: MapClient, key: str, timeout: float = 120.0) -> list[Any]:
+    """The SEVDS nodes of the whole area (asked again while the server compiles its kernels)."""
+    params = {**WINDOW, "layers": [LAYER]}
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return list(codec.decode(SupercellReply, client.get_raw(key, params,
+                                                                    timeout=30.0)).nodes)
+        except ServiceError as exc:
+            if exc.code != "warming_up" or time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+
+
 def unknown_where_known(got: np.ndarray, want: np.ndarray) -> int:
     return int(np.count_nonzero((got == 0) & (want != 0)))
 
@@ -143,3 +159,8 @@ def test_a_sub_map_through_any_member_is_the_single_servers(tmp_path: Path, rout
         for server_id in member_stats(robot):
             assert np.array_equal(window(robot, keys.member(server_id, "fused"), "fused"),
                                   fused_want)
+        nodes = supercells(ref, ref.key("supercells"))
+        assert len(nodes) > 10
+        assert supercells(robot, robot.key("supercells")) == nodes
+        for server_id in member_stats(robot):
+            assert supercells(robot, keys.member(server_id, "supercells")) == nodes
