@@ -8,10 +8,12 @@ another, the outside a third.  UE and BR are measured on the 4-connected compone
 classes (:func:`sogm_service.eval.scenes.gt_segments`).
 
 The plan: the building's interior is cut recursively (a binary space partition) into rooms of
-at least ``min_room`` cells a side, each cut a wall of 1-2 cells with one door of 10-18 cells;
+at least ``min_room`` cells a side, each cut a wall of 1-3 cells with one door of 10-18 cells;
 the outer wall is 1-3 cells.  Each room gets up to four pieces of furniture (3-14 cells), some
-against a wall; a few wall cells are ragged (one cell into the room, as laser maps are).
-Occupied cells read 0.95, free 0.05, unknown 0.5, with Gaussian noise of 0.03 (clipped).
+against a wall; a few wall cells are ragged (one cell into the room, as laser maps are); up to
+19 patches of 5-19 cells of floor stay unobserved (p = 0.5, still their room's in the ground
+truth, as a person labels a room's unexplored corner).  Occupied cells read 0.95, free 0.05,
+unknown 0.5, with Gaussian noise of a standard deviation drawn per map from 0.02-0.08 (clipped).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ def _split(rng: np.random.Generator, box: _Box, min_room: int, occ: npt.NDArray[
     if side < 2 * min_room + 2 or (depth >= 2 and rng.random() < 0.25):
         rooms.append(box)
         return
-    t = int(rng.integers(1, 3))
+    t = int(rng.integers(1, 4))
     cut = int(rng.integers(min_room, side - min_room - t + 1))
     span = w if along_rows else h
     door = int(rng.integers(10, 19))
@@ -104,6 +106,11 @@ def room_scene(seed: int, height: int = 300, width: int = 400, min_room: int = 4
     classes[~known] = 0
     p = np.where(occ, 0.95, 0.05).astype(np.float32)
     p[~known] = 0.5
-    p += rng.normal(0.0, 0.03, p.shape).astype(np.float32)
+    for _ in range(int(rng.integers(0, 20))):  # unobserved floor
+        r, c = (int(v) for v in rng.integers(0, (height - 20, width - 20)))
+        hh, ww = (int(v) for v in rng.integers(5, 20, size=2))
+        patch = p[r:r + hh, c:c + ww]
+        patch[~occ[r:r + hh, c:c + ww]] = 0.5
+    p += rng.normal(0.0, float(rng.uniform(0.02, 0.08)), p.shape).astype(np.float32)
     names = (*ROOM_CLASSES, *(f"room{k + 1}" for k in range(len(rooms))))
     return Scene.build(f"rooms{seed}", ["occupancy"], p[None], classes, names)

@@ -65,9 +65,11 @@ a cell can go back and forth between two supercells; the sweeps simply stop afte
 (walls and free floor, each one bin) it hardly moves off the grid: its undersegmentation error
 is 6-10x SEEDS's.  The energy rule converges (every move lowers E) and follows boundaries: on
 those maps it matches SEEDS's undersegmentation at SEEDS's boundary recall.  It is therefore
-the default, with ``gamma`` 0 (the contour term fights the one-cell pieces a thin wall needs:
-at 0.01 the error is 1.0-1.4x SEEDS's, at 0.05 2-5x) and the extent bound for compactness
-instead.  The zero-variance
+the default, with the extent bound for compactness, ``bins`` 3 (free, unknown and occupied
+each one bin: sensor noise of a few hundredths then leaves cells in their bin, where 5 bins
+split a noisy floor and doubled the error), ``levels`` 4 and a light contour term, ``gamma``
+0.001 (it smooths noisy borders; larger values fight the one-cell pieces a thin wall needs:
+the error grows to 1.0-1.4x SEEDS's at 0.01 and 2-5x at 0.05 with 5 bins).  The zero-variance
 rule applies to both.
 
 Decisions where the paper is silent: the bin of ``p`` is ``floor(p * K)`` (1 goes to the last
@@ -110,10 +112,10 @@ class SevdsParams:
     """SEVDS parameters; these defaults are the ``supercells`` queryable's and the CLI's."""
 
     block_size: int = 8
-    levels: int = 3
-    bins: int = 5
+    levels: int = 4
+    bins: int = 3
     iterations: int = 4
-    gamma: float = 0.0
+    gamma: float = 0.001
     criterion: Criterion = "energy"
     extent: float = 4.0
 

@@ -108,13 +108,16 @@ def test_free_floor_is_evidence() -> None:
     stack = walled_room()
     g, _ = extract_supercells(stack, params=SevdsParams(block_size=8))
     ev = g.evidence()
-    u, v = g.nodes_cell.T
-    floor = stack[0][v, u] < 0.1
-    outside = stack[0][v, u] == 0.5
-    assert floor.any() and outside.any()
+    cells = np.bincount(g.labels.ravel(), minlength=g.count)
+
+    def only(mask: np.ndarray) -> np.ndarray:  # supercells wholly of these cells
+        return np.bincount(g.labels[mask], minlength=g.count) == cells
+
+    floor, outside, wall = only(stack[0] < 0.1), only(stack[0] == 0.5), only(stack[0] > 0.9)
+    assert floor.sum() > 20 and outside.sum() > 20 and wall.any()
     assert (ev[floor] == FREE).all()  # observed free floor: evidence, not "without evidence"
     assert (ev[outside] == UNKNOWN).all()
-    assert (ev[stack[0][v, u] > 0.9] == 0).all()  # a wall piece: its layer, occupied
+    assert (ev[wall] == 0).all()  # a wall piece: its layer, occupied
 
 
 def test_node_evidence_rule() -> None:

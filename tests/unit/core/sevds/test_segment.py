@@ -95,7 +95,8 @@ def test_state_stays_consistent(criterion: str) -> None:
     res = sevds(stack, SevdsParams(block_size=8, criterion=criterion))  # type: ignore[arg-type]
     assert res.labels.shape == (27, 20)
     assert res.count == 4 * 3  # ceil(27/8) * ceil(20/8), none emptied
-    np.testing.assert_array_equal(res.histograms, independent_hist(stack, res.labels, 5))
+    np.testing.assert_array_equal(res.histograms, independent_hist(stack, res.labels,
+                                                                   SevdsParams().bins))
     for c in range(res.count):
         n, _ = cv2.connectedComponents((res.labels == c).astype(np.uint8), connectivity=4)
         assert n - 1 == 1, f"supercell {c} is not one 4-connected piece"
