@@ -75,9 +75,14 @@ def test_nodes_sit_inside_their_supercells_and_free_floor_is_evidence(
     u, v = np.rint(uv).astype(int).T
     assert (labels[v, u] == [n.id for n in reply.nodes]).all()  # every node in its own cell
     evidence = node_evidence(np.array([n.mean_probability for n in reply.nodes]))
-    floor = p[v, u] < 0.1
+    cells = np.bincount(labels.ravel(), minlength=len(reply.nodes))
+
+    def only(mask: np.ndarray) -> np.ndarray:  # supercells wholly of these cells
+        return np.bincount(labels[mask], minlength=len(reply.nodes)) == cells
+
+    floor, outside = only(p < 0.1), only(p == 0.5)
     assert floor.sum() >= 50 and (evidence[floor] == FREE).all()
-    assert (evidence[p[v, u] == 0.5] == UNKNOWN).all()
+    assert outside.sum() >= 10 and (evidence[outside] == UNKNOWN).all()
     for k in range(len(reply.nodes)):  # compact: no supercell spans more than 4 blocks
         rows, cols = np.nonzero(labels == k)
         assert max(np.ptp(rows), np.ptp(cols)) + 1 <= 4 * 8
