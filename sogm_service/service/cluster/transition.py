@@ -58,6 +58,8 @@ class Handover(TileExchange):
             self._prev, self._installed = None, set()
             self._journal.clear()
         dropped = self._drop_unowned(view)
+        if not joining:  # a joiner's tiles came from the store or equal it
+            self._write_new_primaries(prev, view)
         self.stats.count("cluster_transitions")
         self.stats.count("cluster_tiles_pulled", pulled)
         self.stats.count("cluster_tiles_dropped", dropped)
@@ -146,6 +148,17 @@ class Handover(TileExchange):
                 if not view.owns(self.me, index):
                     del self._skip[index]
         return dropped
+
+    def _write_new_primaries(self, prev: Ownership, view: Ownership) -> None:
+        """On a shared store, the tiles this member became primary of are written at the
+        next checkpoint: their last primary may have left before writing them."""
+        store = self.tiles.store
+        if store is None or not store.shared:
+            return
+        for tile in self.tiled.resident():
+            if view.primary(tile.index) == self.me and prev.primary(tile.index) != self.me:
+                with tile.lock:
+                    tile.saved_version = -1  # dirty: the next checkpoint writes it
 
     def _in_shared_store(self) -> set[TileIndex]:
         """Every tile of a shared store (listed now: other members write it too)."""

@@ -66,6 +66,7 @@ class ClusterView:
         self._stop = threading.Event()
         self._busy = True  # until the join is done
         fusers.scope = self.scope
+        tiles.writes_tile = self.writes_tile
         if any(source.matching.mode != "off" for source in config.ism):
             raise ConfigError("scan matching reads the map, which a cluster member holds only "
                               "in part: turn [ism.matching] off with [cluster] enabled",
@@ -100,6 +101,17 @@ class ClusterView:
         i0, j0, i1, j1 = box
         return not any(view.owns(self.me, (i, j))
                        for j in range(j0, j1 + 1) for i in range(i0, i1 + 1))
+
+    def writes_tile(self, index: TileIndex) -> bool:
+        """Whether this member's checkpoints write ``index``: on a shared store its primary
+        owner only (the replicas hold the same ISMs; one PUT per dirty tile, and no replica
+        meets its co-owner's newer copy); with a store of its own, every owner.  Eviction
+        writes whoever evicts."""
+        store = self.tiles.store
+        if store is None or not store.shared:
+            return True
+        view = self._view
+        return view is None or view.primary(index) in (None, self.me)
 
     def announces(self, index: TileIndex) -> bool:
         """Whether this member publishes the tile events of ``index``: its primary owner

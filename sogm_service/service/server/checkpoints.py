@@ -67,6 +67,9 @@ class Checkpointer:
         self.store: TileStore | None = None
         self.writer: TileWriter | None = None
         self._tiled: TiledMap | None = None
+        # Which dirty tiles a checkpoint writes (None: all).  A cluster on a shared store
+        # leaves each tile to its primary owner, whose copy holds what its replicas hold.
+        self.writes_tile: Callable[[TileIndex], bool] | None = None
         self._budget = int(config.storage.memory_budget_mb * 1e6)
         self._writer_bound = int(config.limits.max_writer_queue_mb * 1e6)
         self._warned_budget = False
@@ -173,9 +176,14 @@ class Checkpointer:
         n = 0
         for index in indices:
             snap = self._tiled.snapshot(index)
-            if snap is not None and snap.dirty:
-                self._submit(snap)
-                n += 1
+            if snap is None or not snap.dirty:
+                continue
+            if self.writes_tile is not None and not self.writes_tile(index):
+                self._tiled.mark_saved(index, snap.version)  # another server writes it
+                self.stats.count("tiles_left_to_primary")
+                continue
+            self._submit(snap)
+            n += 1
         return n
 
     def _submit(self, snap: TileSnapshot) -> None:
