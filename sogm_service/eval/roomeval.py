@@ -10,8 +10,9 @@ Part of ``sogm-service eval supercells`` (:mod:`sogm_service.eval.segmentation` 
    own block grid, so it is asked for the count whose result lies nearest SEVDS's
    (:func:`seeds_request`).  SEEDS keeps the set of its parameter grid with the lowest scene mean
    of ``(1 - BR) + UE``; SEVDS runs with the defaults of the ``supercells`` query (no tuning),
-   the paper's rule (``criterion = "distribution"``) and the default without the extent bound
-   (``extent = 64``) next to it.
+   the paper's rule (``criterion = "distribution"``), the default without the extent bound
+   (``extent = 64``) and the paper's rule at gamma 0.01 with 5 bins, 3 levels and no bound next
+   to it.
 3. **Compactness** of every label image (:func:`compactness`): the widest span of a segment in
    block sizes, the largest segment, the most neighbours, segments in more than one piece, and
    nodes (the cell nearest each centroid, :mod:`sogm_service.core.sevds.supercells`) or bare
@@ -56,8 +57,8 @@ SEVDS_VARIANTS: dict[str, SevdsParams] = {
     "SEVDS (defaults)": SevdsParams(),
     "SEVDS (paper rule)": SevdsParams(criterion="distribution"),
     "SEVDS (no extent bound)": SevdsParams(extent=64.0),
-    "SEVDS (paper rule, gamma 0.01, no bound)": SevdsParams(criterion="distribution", gamma=0.01,
-                                                            extent=64.0),
+    "SEVDS (paper rule, gamma 0.01, bins 5, levels 3, no bound)": SevdsParams(
+        levels=3, bins=5, gamma=0.01, criterion="distribution", extent=64.0),
 }
 
 
