@@ -6,6 +6,8 @@ on a real SeaweedFS (tests/s3server.py) and no disk of their own.
   crash may lose), and no member deleted the tiles it stopped owning from the shared bucket.
 * A member joining while the bucket's copies are behind the members' memory loads its tiles
   from the bucket: their owners write them there for it.
+* Checkpoints write a tile on its primary only: a member killed before it wrote its tiles
+  leaves them to the member that becomes their primary, which writes them.
 * A member stopped with SIGSTOP while the others take over and fuse newer ISMs, then resumed
   and shut down (which flushes its stale tiles), overwrites none of the newer tiles: its writes
   are fenced by the objects' ETags and the ISMs they hold.
@@ -166,3 +168,34 @@ def test_a_joining_member_loads_its_tiles_from_the_bucket(
                    for s in stats.values()) >= joiner["cluster_tiles_loaded_from_store"]
         keys = MapKeys(robot.prefix, robot.map_name)
         assert np.array_equal(window(robot, keys.member(c.server_id, "submap")), before)
+
+
+@pytest.mark.timeout(300)
+def test_tiles_whose_primary_died_unwritten_reach_the_bucket(
+        tmp_path: Path, router: str, bucket: dict[str, Any], procs: list[ServerProcess]) -> None:
+    """Checkpoints write a tile on its primary only.  Of two members (both own every tile, so
+    nobody pulls a tile when one leaves), a never checkpoints and is killed: b, primary of
+    a's tiles now, writes them, so after b is killed too a fresh member has the whole map."""
+    a = s3_member(tmp_path, "a", router, 1, bucket, checkpoint_s=3600.0)
+    procs.append(a)
+    procs.append(s3_member(tmp_path, "b", router, 2, bucket))
+    with MapClient.connect(router, timeout=5.0) as robot:
+        assert wait_until(lambda: len(member_stats(robot)) == 2, 30)
+        publish(robot, 1000.0, seed=11)
+        assert wait_until(lambda: all(
+            s["counters"].get("isms_fused", 0) + s["counters"].get("cluster_isms_elsewhere", 0)
+            >= N_ISMS for s in member_stats(robot).values()), 90)
+        before = window(robot)
+        a.proc.kill()
+        a.proc.wait(10)
+        assert wait_until(lambda: all(  # b has seen a leave
+            len(s["extra"]["cluster_members"]) == 1 for s in member_stats(robot).values()), 60)
+        assert wait_until(lambda: fused_and_written(robot, 1, N_ISMS), 60), member_stats(robot)
+    for p in procs:
+        if p.proc.poll() is None:
+            p.proc.kill()
+            p.proc.wait(10)
+    procs.append(s3_member(tmp_path, "fresh", router, 1, bucket))
+    with MapClient.connect(router, timeout=5.0) as robot:
+        assert wait_until(lambda: len(member_stats(robot)) == 1, 30)
+        assert np.array_equal(window(robot), before)
