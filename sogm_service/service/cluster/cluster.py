@@ -39,6 +39,12 @@ cluster without a coordinator:
   its primary with its content digest: ``same``, or the primary's copy, which it installs
   before replaying the journal as a handover does.  The primary's copy wins.
 
+* **A shared store** (``[store] url``: one bucket for every member): a member taking a tile
+  over asks its owners to write their copy there (answer ``stored``) and loads it; a tile no
+  live member holds is loaded as stored; checkpoints write a tile on its primary only, and a
+  member never deletes a tile it stopped owning from the bucket.  Writes are fenced
+  (:mod:`sogm_service.store.s3`), so a member back from a pause cannot overwrite newer tiles.
+
 Scan matching (which reads the map) is not supported in a cluster.
 """
 
