@@ -65,6 +65,11 @@ def registry() -> list[Benchmark]:
 
         return cluster_split(quick)
 
+    def scaled(quick: bool) -> Row:
+        from sogm_service.bench.cluster_scale import cluster_scale
+
+        return cluster_scale(quick)
+
     def gathered(quick: bool) -> Row:
         from sogm_service.bench.cluster import cluster_submap
 
@@ -92,6 +97,8 @@ def registry() -> list[Benchmark]:
                   flooded),
         Benchmark("cluster", "ingestion with 2 cluster members vs 1 (replicas 1)",
                   clustered),
+        Benchmark("cluster_scale", "ingestion of 1, 2, 3 members each capped at the same CPU "
+                  "(replicas 1 and 2)", scaled),
         Benchmark("cluster_split", "bytes per ISM: every member gets it whole vs a split "
                   "per tile to each tile's owners", split),
         Benchmark("cluster_submap", "sub-map through a member owning none of its tiles vs "

@@ -1,0 +1,350 @@
+"""The ``cluster_scale`` row: ingestion of 1, 2 and 3 cluster members, each held to the same CPU
+share, as if each ran on a host of its own.
+
+Each member is a ``sogm-service serve`` with ``[cluster] enabled`` in a cgroup of its own whose
+CPU quota is the cap (``cpu.max`` of cgroup v2, or ``cpu.cfs_quota_us`` of the v1 ``cpu``
+controller), placed right after it starts so its every thread is under it.  The Zenoh router
+and the publisher stand outside the caps, for the network and the fleet.  The publisher (a
+process of its own, ``python -m sogm_service.bench.cluster_scale publish``) puts 256x256
+aligned ``prob_u8`` ISMs each inside one tile of a 16 x 16 tile area as fast as the router
+takes them (BLOCK): more than the cluster fuses, so the members' pace is the measure.  The rate
+is the ISMs every member has handled (``isms_fused`` of each member's ``stats``, asked under
+its member key) per second over a window after a warm-up: an ISM counts once all its owners
+have fused it and the others have checked its header.  Without a cgroup CPU controller the row
+runs uncapped and says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sogm_service.bench import transport
+from sogm_service.bench.cluster import RES, _server_id
+from sogm_service.bench.core import Row, median
+from sogm_service.bench.zbench import PY, Proc
+from sogm_service.client.mapclient import MapClient
+from sogm_service.client.session import open_session, wait_listening
+from sogm_service.wire.keys import MapKeys
+
+CAP_CPU = 0.4
+"""Each member's CPU share, in cores: 3 members (1.2 cores) leave the rest of this 2-core
+machine to the router and the publisher."""
+PERIOD_US = 10_000
+"""The quota's period: short, so a member's throttled stretches (at most 6 ms of 10) stay
+within what its ingestion queue absorbs; with 100 ms the members' stalls, out of phase, held
+the one publisher (BLOCK) and so every other member too."""
+WEIGHT = 10
+"""A bench group's CPU weight against a process outside them: the cap is a share the member
+gets, not only a ceiling, while other work runs on the machine."""
+TILES = 16  # the publisher's area, in tiles a side
+SPAN = 256 * RES  # a tile's side in metres
+ISM_CELLS = 252  # an ISM's side: inside one tile (see payloads)
+
+
+# -- cgroups ----------------------------------------------------------------------------------
+class CpuCaps:
+    """One cgroup per member under ``sogm-bench-<pid>``, each with the same CPU quota; removed
+    by :meth:`close` (its processes moved back to the parent first, should any remain)."""
+
+    def __init__(self, cap: float) -> None:
+        self.cap = cap
+        self.kind, self.root = _controller()
+        self.base = self.root / f"sogm-bench-{os.getpid()}" if self.root else None
+        self.made: list[Path] = []
+        if self.base is not None:
+            self.base.mkdir()
+            self.made.append(self.base)
+            if self.kind == "v2":  # the members' groups need the cpu controller below base
+                (self.base / "cgroup.subtree_control").write_text("+cpu")
+
+    @property
+    def available(self) -> bool:
+        return self.base is not None
+
+    def describe(self) -> str:
+        if not self.available:
+            return "uncapped (no cgroup CPU controller here)"
+        what = "cpu.max" if self.kind == "v2" else "cpu.cfs_quota_us"
+        return (f"{self.cap:g} CPU per member (cgroup {self.kind} {what}, weight {WEIGHT}x a "
+                "process)")
+
+    def place(self, name: str, pid: int, capped: bool = True) -> None:
+        """Put process ``pid`` (all its threads) in group ``name``, made with the quota (or,
+        ``capped`` False, without).  Every group weighs ``WEIGHT`` times a plain process, so
+        that on a machine busy with other work a member still gets its whole cap."""
+        if self.base is None:
+            return
+        group = self.base / name
+        if group not in self.made:
+            group.mkdir()
+            self.made.append(group)
+            quota = int(self.cap * PERIOD_US)
+            if self.kind == "v2":
+                (group / "cpu.weight").write_text(str(100 * WEIGHT))
+                if capped:
+                    (group / "cpu.max").write_text(f"{quota} {PERIOD_US}")
+            else:
+                (group / "cpu.shares").write_text(str(1024 * WEIGHT))
+                if capped:
+                    (group / "cpu.cfs_period_us").write_text(str(PERIOD_US))
+                    (group / "cpu.cfs_quota_us").write_text(str(quota))
+        (group / "cgroup.procs").write_text(str(pid))
+
+    def close(self) -> None:
+        for group in reversed(self.made):
+            try:
+                for pid in (group / "cgroup.procs").read_text().split():
+                    (group.parent / "cgroup.procs").write_text(pid)
+                group.rmdir()
+            except OSError:
+                pass
+        self.made.clear()
+
+
+def _controller() -> tuple[str, Path | None]:
+    """Where this machine's cgroup CPU controller is mounted: v2, else v1's ``cpu``."""
+    v2 = Path("/sys/fs/cgroup")
+    try:
+        if "cpu" in (v2 / "cgroup.controllers").read_text().split() \
+                and os.access(v2, os.W_OK):
+            if "cpu" not in (v2 / "cgroup.subtree_control").read_text().split():
+                (v2 / "cgroup.subtree_control").write_text("+cpu")
+            return "v2", v2
+    except OSError:
+        pass
+    v1 = Path("/sys/fs/cgroup/cpu")
+    if (v1 / "cpu.cfs_quota_us").exists() and os.access(v1, os.W_OK):
+        return "v1", v1
+    return "", None
+
+
+@contextmanager
+def cpu_caps(cap: float) -> Iterator[CpuCaps]:
+    caps = CpuCaps(cap)
+    try:
+        yield caps
+    finally:
+        caps.close()
+
+
+# -- one measurement --------------------------------------------------------------------------
+def _start_member(d: Path, name: str, router: str, replicas: int, caps: CpuCaps
+                  ) -> tuple[Proc, str]:
+    """A member, in its capped group from its first instruction on (its endpoint too)."""
+    how = transport.current()
+    endpoint = how.endpoint()
+    cfg = d / f"{name}.toml"
+    cfg.write_text(f'[map]\nresolution = {RES}\n[cluster]\nenabled = true\nreplicas = {replicas}\n'
+                   f'[zenoh]\nlisten = ["{endpoint}"]\nconnect = ["{router}"]\n'
+                   + how.server_toml(), encoding="utf-8")
+    proc = Proc([PY, "-m", "sogm_service", "serve", "--config", str(cfg)], d / f"{name}.log")
+    caps.place(name, proc.pid)
+    return proc, endpoint
+
+
+def _ended(proc: Proc) -> Callable[[], bool]:
+    return lambda: proc.popen.poll() is not None
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds process ``pid``'s live threads have run (the scheduler's own accounting,
+    ``/proc/<pid>/task/*/schedstat``: exact, where the tick-sampled ``stat`` times are biased
+    by a quota's throttling)."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with suppress(OSError, ValueError, IndexError):  # a thread that just ended
+            total += int((task / "schedstat").read_text().split()[0])
+    return total / 1e9
+
+
+def _handled(client: MapClient, ids: dict[str, int]) -> dict[str, tuple[int, int, float]]:
+    """Each member's (``isms_fused``, ``cluster_isms_elsewhere``), asked under its own key,
+    and the CPU seconds its process has used."""
+    import msgpack
+
+    out = {}
+    for member, pid in ids.items():
+        key = MapKeys(client.prefix, client.map_name).member(member, "stats")
+        got = msgpack.unpackb(client.get_raw(key, {}, timeout=10.0))
+        counters = got["counters"]
+        out[member] = (int(counters.get("isms_fused", 0)),
+                       int(counters.get("cluster_isms_elsewhere", 0)), _cpu_s(pid))
+    return out
+
+
+def measure(members: int, replicas: int, caps: CpuCaps, warm_s: float, window_s: float
+            ) -> dict[str, Any]:
+    """The cluster's ISMs per second with ``members`` capped members, and each member's share
+    of the ISMs it fused (not just checked)."""
+    how = transport.current()
+    with tempfile.TemporaryDirectory(prefix="sogm-bench-scale-") as tmp:
+        d = Path(tmp)
+        router_ep = how.endpoint()
+        procs = [Proc([PY, "-m", "sogm_service", "router", "--listen", router_ep,
+                       *how.server_args()], d / "router.log")]
+        try:
+            caps.place("feeders", procs[0].pid, capped=False)
+            wait_listening(router_ep, 30.0, lambda: procs[0].popen.poll() is not None,
+                           procs[0].tail)
+            started = [_start_member(d, f"member{k}", router_ep, min(replicas, members), caps)
+                       for k in range(members)]  # start side by side: each slow under its cap
+            procs += [proc for proc, _ in started]
+            ids = {}
+            for proc, endpoint in started:
+                wait_listening(endpoint, 60.0, _ended(proc), proc.tail)
+                ids[_server_id(proc)] = proc.pid
+            pub = Proc([PY, "-m", "sogm_service.bench.cluster_scale", "publish", "--connect",
+                        router_ep, "--key", how.ism_key("obstacle"), *how.client_args()],
+                       d / "publisher.log", stdin=True)
+            procs.append(pub)
+            caps.place("feeders", pub.pid, capped=False)
+            pub.expect("ready", 60.0)
+            with MapClient(open_session(how.client(router_ep))) as client:
+                deadline = time.monotonic() + 60
+                while len(client.servers(timeout=1.0)) < members and \
+                        time.monotonic() < deadline:
+                    time.sleep(0.1)
+                time.sleep(1.0)  # the members' own handovers settle
+                pub.send(f"{warm_s + window_s + 2.0}")
+                time.sleep(warm_s)
+                t0, before = time.monotonic(), _handled(client, ids)
+                time.sleep(window_s)
+                t1, after = time.monotonic(), _handled(client, ids)
+                sent = int(pub.expect("sent", 60.0 + warm_s + window_s)[0])
+        finally:
+            for proc in reversed(procs):
+                proc.stop()
+    dt = t1 - t0
+    done = min(after[m][0] - before[m][0] for m in ids)
+    own = [(after[m][0] - before[m][0]) - (after[m][1] - before[m][1]) for m in ids]
+    other = [after[m][1] - before[m][1] for m in ids]
+    cpu = [after[m][2] - before[m][2] for m in ids]
+    return {"rate": done / dt, "owned_share_min": min(own) / max(1, sum(own)),
+            "owned_share_max": max(own) / max(1, sum(own)), "fused_copies": sum(own) / dt,
+            "sent": float(sent), "cpu_per_member": sum(cpu) / len(cpu) / dt,
+            "samples": [(o, e, c) for o, e, c in zip(own, other, cpu, strict=True)]}
+
+
+def cluster_scale(quick: bool) -> Row:
+    warm_s, window_s, rounds = (1.0, 1.5, 1) if quick else (2.0, 6.0, 2)
+    configs = [(1, 1), (2, 1), (3, 1), (2, 2), (3, 2)]
+    runs: dict[tuple[int, int], list[dict[str, Any]]] = {c: [] for c in configs}
+    load0 = os.getloadavg()[0]
+    with cpu_caps(CAP_CPU) as caps:
+        for _ in range(rounds):  # interleaved: load changes hit every configuration alike
+            for n, r in configs:
+                runs[(n, r)].append(measure(n, r, caps, warm_s, window_s))
+        cap = caps.describe()
+        capped = caps.available
+    load1 = os.getloadavg()[0]
+    rate = {c: median([m["rate"] for m in ms]) for c, ms in runs.items()}
+    one = rate[(1, 1)]
+    s = {c: rate[c] / one for c in configs}
+    passed = (s[(2, 1)] >= 1.6 and s[(3, 1)] >= 2.2) if capped else None
+    fused_s, checked_s = costs([x for (_, r), ms in runs.items() if r == 1
+                                for m in ms for x in m["samples"]])
+    cpu = {c: median([m["cpu_per_member"] for m in ms]) for c, ms in runs.items()}
+    shares = ", ".join(f"{n}: {runs[(n, 1)][-1]['owned_share_min']:.2f}-"
+                       f"{runs[(n, 1)][-1]['owned_share_max']:.2f}" for n in (2, 3))
+    return Row("cluster_scale", rate[(2, 1)], one, "ISM/s", s[(2, 1)],
+               ">= 1.6x with 2 members, >= 2.2x with 3 (replicas 1)", passed,
+               f"one cluster member held to {CAP_CPU:g} CPU",
+               f"{cap}; router and publisher uncapped; {ISM_CELLS}x{ISM_CELLS} aligned ISMs, each "
+               f"inside one of "
+               f"{TILES}x{TILES} tiles, offered faster than fused (BLOCK); rate = ISMs every "
+               f"member handled per s over {window_s:g} s after {warm_s:g} s, median of "
+               f"{rounds}; replicas 1: 1/2/3 members {one:.0f}/{rate[(2, 1)]:.0f}/"
+               f"{rate[(3, 1)]:.0f} ISM/s ({s[(2, 1)]:.2f}x, {s[(3, 1)]:.2f}x); replicas 2: "
+               f"2/3 members {rate[(2, 2)]:.0f}/{rate[(3, 2)]:.0f} ISM/s ({s[(2, 2)]:.2f}x, "
+               f"{s[(3, 2)]:.2f}x); share of the fused ISMs per member {shares}; a member's CPU "
+               f"{fused_s * 1e6:.0f} us per ISM it fuses, {checked_s * 1e6:.0f} us per ISM it "
+               f"only checks (fitted); CPU per member 1/2/3: {cpu[(1, 1)]:.2f}/"
+               f"{cpu[(2, 1)]:.2f}/{cpu[(3, 1)]:.2f}; load average "
+               f"{load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores",
+               {"speedup_2": s[(2, 1)], "speedup_3": s[(3, 1)],
+                "speedup_2_replicas_2": s[(2, 2)], "speedup_3_replicas_2": s[(3, 2)],
+                "cap": cap, "cap_cpu": CAP_CPU if capped else 0.0,
+                "rate_1": one, "rate_2": rate[(2, 1)], "rate_3": rate[(3, 1)],
+                "rate_2_replicas_2": rate[(2, 2)], "rate_3_replicas_2": rate[(3, 2)],
+                "cpu_us_per_fused_ism": fused_s * 1e6, "cpu_us_per_checked_ism": checked_s * 1e6,
+                "cpu_per_member_1": cpu[(1, 1)], "cpu_per_member_2": cpu[(2, 1)],
+                "cpu_per_member_3": cpu[(3, 1)], "load_start": load0, "load_end": load1})
+
+
+def costs(samples: list[tuple[int, int, float]]) -> tuple[float, float]:
+    """A member's CPU seconds per ISM it fuses and per ISM it only checks (another member's),
+    fitted by least squares to every member's (fused, checked, CPU seconds) of a window."""
+    a = np.array([[o, e] for o, e, _ in samples], float)
+    b = np.array([c for _, _, c in samples], float)
+    (fused, checked), *_ = np.linalg.lstsq(a, b, rcond=None)
+    return float(fused), float(checked)
+
+
+# -- the publisher process --------------------------------------------------------------------
+def payloads() -> list[bytes]:
+    """One encoded ``prob_u8`` ISM inside each tile of the area, in an order that visits the
+    area's tiles far apart in turn.  Each is 252x252 cells, 2 cells in from its tile's edges:
+    a grid of the tile's full 256 cells would also meet the tile's neighbours (a footprint
+    includes the cells on its edges), so every ISM would have up to 4 tiles' owners."""
+    from sogm_service.bench.compute import ism_message, synthetic_ism
+    from sogm_service.core.geometry import Pose2D
+    from sogm_service.wire import codec
+
+    codes = [synthetic_ism(ISM_CELLS, s) for s in range(4)]
+    out = []
+    for k in range(TILES * TILES):
+        tile = (k * 97) % (TILES * TILES)  # 97 is prime to 256: every tile once
+        i, j = tile % TILES, tile // TILES
+        inset = (256 - ISM_CELLS) / 2 * RES
+        msg = ism_message(codes[k % 4], RES, Pose2D(i * SPAN + inset, j * SPAN + inset, 0.0))
+        out.append(codec.encode(msg.model_copy(update={"stamp": float(k)})))
+    return out
+
+
+def run_publisher(argv: list[str]) -> int:
+    """Every ``SECONDS`` line on stdin: put the ISMs in turn as fast as the link takes them
+    (BLOCK) for that long, then print ``sent <count>``."""
+    import zenoh
+
+    from sogm_service.bench.procs import _stop_event, _transport
+
+    p = argparse.ArgumentParser(prog="python -m sogm_service.bench.cluster_scale publish")
+    p.add_argument("--connect", required=True)
+    p.add_argument("--key", required=True)
+    p.add_argument("--zenoh-config", type=Path, default=None)
+    args = p.parse_args(argv)
+    stop = _stop_event()
+    data = payloads()
+    session = open_session(_transport(args).client(args.connect))
+    try:
+        pub = session.declare_publisher(args.key,
+                                        congestion_control=zenoh.CongestionControl.BLOCK)
+        print("ready", flush=True)
+        for line in sys.stdin:
+            if stop.is_set() or not line.strip():
+                break
+            t_end, n = time.time() + float(line), 0
+            while time.time() < t_end and not stop.is_set():
+                pub.put(data[n % len(data)])
+                n += 1
+            print(f"sent {n}", flush=True)
+        pub.undeclare()
+    finally:
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] != ["publish"]:
+        sys.exit("usage: python -m sogm_service.bench.cluster_scale publish --connect EP --key K")
+    sys.exit(run_publisher(sys.argv[2:]))
