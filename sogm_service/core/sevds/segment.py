@@ -63,7 +63,7 @@ without the contour term (``D(c_hat) < 0`` is impossible), and because the loser
 a cell can go back and forth between two supercells; the sweeps simply stop after
 ``iterations``.  It gives the lowest intra-cluster variation, but on an occupancy map of rooms
 (walls and free floor, each one bin) it hardly moves off the grid: its undersegmentation error
-is 6-10x SEEDS's.  The energy rule converges (every move lowers E) and follows boundaries: on
+is 5-9x SEEDS's.  The energy rule converges (every move lowers E) and follows boundaries: on
 those maps it matches SEEDS's undersegmentation at SEEDS's boundary recall.  It is therefore
 the default, with the extent bound for compactness, ``bins`` 3 (free, unknown and occupied
 each one bin: sensor noise of a few hundredths then leaves cells in their bin, where 5 bins
