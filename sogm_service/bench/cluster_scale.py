@@ -36,9 +36,9 @@ from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import open_session, wait_listening
 from sogm_service.wire.keys import MapKeys
 
-CAP_CPU = 0.4
-"""Each member's CPU share, in cores: 3 members (1.2 cores) leave the rest of this 2-core
-machine to the router and the publisher."""
+CAP_CPU = 0.25
+"""Each member's CPU share, in cores: 3 members (0.75 cores) leave the rest of this 2-core
+machine to the router and the publisher (with 0.4 each, 3 members got 0.16 of their 0.4)."""
 PERIOD_US = 10_000
 """The quota's period: short, so a member's throttled stretches (at most 6 ms of 10) stay
 within what its ingestion queue absorbs; with 100 ms the members' stalls, out of phase, held
@@ -61,6 +61,12 @@ class CpuCaps:
         self.kind, self.root = _controller()
         self.base = self.root / f"sogm-bench-{os.getpid()}" if self.root else None
         self.made: list[Path] = []
+        # v1 keeps CPU time in the cpuacct hierarchy: a twin group per member there
+        acct = Path("/sys/fs/cgroup/cpuacct")
+        self.acct = acct / self.base.name if self.kind == "v1" and self.base is not None \
+            and os.access(acct, os.W_OK) else None
+        if self.acct is not None:
+            self.acct.mkdir()
         if self.base is not None:
             self.base.mkdir()
             self.made.append(self.base)
@@ -99,16 +105,38 @@ class CpuCaps:
                     (group / "cpu.cfs_period_us").write_text(str(PERIOD_US))
                     (group / "cpu.cfs_quota_us").write_text(str(quota))
         (group / "cgroup.procs").write_text(str(pid))
+        if self.acct is not None:
+            twin = self.acct / name
+            if twin not in self.made:
+                twin.mkdir()
+                self.made.append(twin)
+            (twin / "cgroup.procs").write_text(str(pid))
+
+    def usage_s(self, name: str) -> float | None:
+        """CPU seconds group ``name`` has used, every thread that ever ran in it included
+        (None without a cgroup)."""
+        if self.kind == "v2" and self.base is not None:
+            for line in (self.base / name / "cpu.stat").read_text().splitlines():
+                if line.startswith("usage_usec "):
+                    return int(line.split()[1]) / 1e6
+        if self.acct is not None:
+            return int((self.acct / name / "cpuacct.usage").read_text()) / 1e9
+        return None
 
     def close(self) -> None:
         for group in reversed(self.made):
+            top = self.root if self.acct is None or not group.is_relative_to(self.acct) \
+                else self.acct.parent
             try:
                 for pid in (group / "cgroup.procs").read_text().split():
-                    (group.parent / "cgroup.procs").write_text(pid)
+                    (top / "cgroup.procs").write_text(pid)  # type: ignore[operator]
                 group.rmdir()
             except OSError:
                 pass
         self.made.clear()
+        if self.acct is not None:
+            with suppress(OSError):
+                self.acct.rmdir()
 
 
 def _controller() -> tuple[str, Path | None]:
@@ -167,18 +195,21 @@ def _cpu_s(pid: int) -> float:
     return total / 1e9
 
 
-def _handled(client: MapClient, ids: dict[str, int]) -> dict[str, tuple[int, int, float]]:
+def _handled(client: MapClient, ids: dict[str, tuple[int, str]], caps: CpuCaps
+             ) -> dict[str, tuple[int, int, float]]:
     """Each member's (``isms_fused``, ``cluster_isms_elsewhere``), asked under its own key,
-    and the CPU seconds its process has used."""
+    and the CPU seconds it has used (its cgroup's count, else its threads')."""
     import msgpack
 
     out = {}
-    for member, pid in ids.items():
+    for member, (pid, name) in ids.items():
+        used = caps.usage_s(name)
         key = MapKeys(client.prefix, client.map_name).member(member, "stats")
         got = msgpack.unpackb(client.get_raw(key, {}, timeout=10.0))
         counters = got["counters"]
         out[member] = (int(counters.get("isms_fused", 0)),
-                       int(counters.get("cluster_isms_elsewhere", 0)), _cpu_s(pid))
+                       int(counters.get("cluster_isms_elsewhere", 0)),
+                       _cpu_s(pid) if used is None else used)
     return out
 
 
@@ -200,9 +231,9 @@ def measure(members: int, replicas: int, caps: CpuCaps, warm_s: float, window_s:
                        for k in range(members)]  # start side by side: each slow under its cap
             procs += [proc for proc, _ in started]
             ids = {}
-            for proc, endpoint in started:
+            for k, (proc, endpoint) in enumerate(started):
                 wait_listening(endpoint, 60.0, _ended(proc), proc.tail)
-                ids[_server_id(proc)] = proc.pid
+                ids[_server_id(proc)] = (proc.pid, f"member{k}")
             pub = Proc([PY, "-m", "sogm_service.bench.cluster_scale", "publish", "--connect",
                         router_ep, "--key", how.ism_key("obstacle"), *how.client_args()],
                        d / "publisher.log", stdin=True)
@@ -217,9 +248,9 @@ def measure(members: int, replicas: int, caps: CpuCaps, warm_s: float, window_s:
                 time.sleep(1.0)  # the members' own handovers settle
                 pub.send(f"{warm_s + window_s + 2.0}")
                 time.sleep(warm_s)
-                t0, before = time.monotonic(), _handled(client, ids)
+                t0, before = time.monotonic(), _handled(client, ids, caps)
                 time.sleep(window_s)
-                t1, after = time.monotonic(), _handled(client, ids)
+                t1, after = time.monotonic(), _handled(client, ids, caps)
                 sent = int(pub.expect("sent", 60.0 + warm_s + window_s)[0])
         finally:
             for proc in reversed(procs):
