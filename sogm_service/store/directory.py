@@ -19,30 +19,26 @@ import fcntl
 import itertools
 import logging
 import os
-import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Final
 
-from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
-from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
+from sogm_service.core.geodesy import GeodeticLike
+from sogm_service.core.map.tiletypes import TileIndex
+from sogm_service.store.base import TileStoreBase
 from sogm_service.store.format import read_tile_header
 from sogm_service.store.protocol import StoreProblem, TileFileInfo
 from sogm_service.wire.errors import StoreLockedError, TileFormatError
 from sogm_service.wire.tilefile import (
     DEFAULT_LEVEL,
     SUFFIX,
-    Expectation,
-    Fixed,
     StoredTile,
     TileHeader,
     _file_stem,
     check_expectation,
     tile_file_name,
     tile_from_bytes,
-    tile_header,
-    tile_to_bytes,
 )
 
 log = logging.getLogger(__name__)
@@ -108,7 +104,7 @@ def _lock_holder(fd: int) -> int | None:
 
 
 
-class DirectoryStore:
+class DirectoryStore(TileStoreBase):
     """A directory of tile files for one map (module docstring: format and guarantees).
 
     Thread-safe: the writer thread writes while the server thread indexes and loads.
@@ -124,14 +120,8 @@ class DirectoryStore:
         ``lock``: take the directory's exclusive lock (:class:`StoreLockedError` when another
         process holds it); pass False only when the caller holds it (:func:`lock_directory`).
         """
+        super().__init__(map_name, resolution, tile_size, frame, datum, level, readonly)
         self.directory = Path(directory)
-        self.expect = Expectation(map_name, float(resolution), int(tile_size), frame)
-        self.level = level
-        self.readonly = readonly
-        self.plane = None if datum is None else LocalTangentPlane(datum)
-        self.problems: list[StoreProblem] = []
-        self._lock = threading.RLock()
-        self._index: dict[TileIndex, TileFileInfo] = {}
         self._lock_fd: int | None = None
         if not readonly:
             self.directory.mkdir(parents=True, exist_ok=True)
@@ -145,12 +135,6 @@ class DirectoryStore:
             os.close(self._lock_fd)
             self._lock_fd = None
 
-    def __enter__(self) -> DirectoryStore:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     # -- names ----------------------------------------------------------------------------
     def path_for(self, i: int, j: int) -> Path:
         e = self.expect
@@ -160,12 +144,6 @@ class DirectoryStore:
         e = self.expect
         return self.directory.glob(f"{_file_stem(e.map_name, e.resolution, e.tile_size)}_*"
                                    f"{SUFFIX}")
-
-    def header_for(self, i: int, j: int, layers: Sequence[str],
-                   stamp: float, decay: dict[str, float] | None = None,
-                   applied: dict[str, Mark] | None = None, version: int = 0) -> TileHeader:
-        """The header this store writes for tile ``(i, j)``."""
-        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay, applied, version)
 
     # -- index ----------------------------------------------------------------------------
     def index(self) -> dict[TileIndex, TileFileInfo]:
@@ -202,35 +180,7 @@ class DirectoryStore:
             with contextlib.suppress(OSError):
                 tmp.unlink()
 
-    def indexed(self) -> dict[TileIndex, TileFileInfo]:
-        """The index as last scanned and updated by writes (no disk access)."""
-        with self._lock:
-            return dict(self._index)
-
-    def __contains__(self, index: object) -> bool:
-        with self._lock:
-            return index in self._index
-
     # -- reading --------------------------------------------------------------------------
-    def read_bytes(self, i: int, j: int) -> bytes | None:
-        """The validated file bytes of tile ``(i, j)`` (for ``tiles/<i>/<j>`` replies)."""
-        got = self._read_valid(i, j)
-        return None if got is None else got[0]
-
-    def load(self, i: int, j: int) -> StoredTile | None:
-        """Tile ``(i, j)`` from disk, or None when absent or rejected (then quarantined).
-
-        Other I/O errors (EIO, EMFILE, permissions) propagate: they may be transient, and
-        answering None would let the caller start an empty tile that later overwrites the file.
-        """
-        got = self._read_valid(i, j)
-        return None if got is None else got[1]
-
-    def loader(self, i: int, j: int) -> LoaderResult | None:
-        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiletypes.Loader`."""
-        tile = self.load(i, j)
-        return None if tile is None else tile.as_loader_result()
-
     def _read_valid(self, i: int, j: int) -> tuple[bytes, StoredTile] | None:
         path = self.path_for(i, j)
         try:
@@ -251,21 +201,7 @@ class DirectoryStore:
         return blob, tile
 
     # -- writing --------------------------------------------------------------------------
-    def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
-              stamp: float, decay: dict[str, float] | None = None,
-              applied: dict[str, Mark] | None = None, version: int = 0) -> TileFileInfo:
-        """Encode and atomically write one tile (synchronous; :class:`TileWriter` runs this).
-        ``decay``: the decaying layers' stamps (:mod:`sogm_service.core.map.forget`); ``applied``:
-        the tile's marks (``Tile.applied``); ``version``: the tile's (``Tile.version``)."""
-        header = self.header_for(i, j, layers, stamp, decay, applied, version)
-        return self._write_blob(header, tile_to_bytes(header, data, self.level))
-
-    def write_bytes(self, blob: bytes) -> TileFileInfo:
-        """Validate a tile received from elsewhere (a replica's reply) and store it as is."""
-        tile = tile_from_bytes(blob, self.expect)
-        return self._write_blob(tile.header, blob)
-
-    def _write_blob(self, header: TileHeader, blob: bytes) -> TileFileInfo:
+    def _store(self, header: TileHeader, blob: bytes) -> TileFileInfo:
         if self.readonly:
             raise PermissionError(f"store {self.directory} was opened read-only")
         path = self.path_for(header.i, header.j)

@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
-from collections.abc import Sequence
 from pathlib import PurePath
 from typing import Any, Final
 
-from sogm_service.core.geodesy import GeodeticLike, LocalTangentPlane
-from sogm_service.core.map.tiletypes import LoaderResult, Mark, TileIndex
+from sogm_service.core.geodesy import GeodeticLike
+from sogm_service.core.map.tiletypes import Mark, TileIndex
+from sogm_service.store.base import TileStoreBase
 from sogm_service.store.protocol import StoreProblem, TileFileInfo
 from sogm_service.store.s3objects import (
     ABSENT,
@@ -45,8 +44,6 @@ from sogm_service.wire.errors import StoreConflictError, StoreUnavailableError, 
 from sogm_service.wire.tilefile import (
     DEFAULT_LEVEL,
     MAX_APPLIED,
-    Expectation,
-    Fixed,
     StoredTile,
     TileHeader,
     _file_stem,
@@ -54,8 +51,6 @@ from sogm_service.wire.tilefile import (
     marks_of,
     tile_file_name,
     tile_from_bytes,
-    tile_header,
-    tile_to_bytes,
 )
 
 log = logging.getLogger(__name__)
@@ -82,7 +77,7 @@ def holds_all(ours: dict[str, Mark], theirs: dict[str, Mark]) -> bool:
     return True
 
 
-class S3Store:
+class S3Store(TileStoreBase):
     """The tiles of one map in an S3 bucket (module docstring: format and guarantees).
 
     Thread-safe: the writer thread writes while the server thread indexes and loads."""
@@ -95,16 +90,10 @@ class S3Store:
                  endpoint_url: str | None = None, client: Any = None) -> None:
         """``frame``: the map frame every tile must carry (None: any, for inspection tools).
         ``readonly``: never write, quarantine or delete (for inspection tools)."""
+        super().__init__(map_name, resolution, tile_size, frame, datum, level, readonly)
         self.location = S3Location.parse(location) if isinstance(location, str) else location
-        self.expect = Expectation(map_name, float(resolution), int(tile_size), frame)
-        self.level = level
-        self.readonly = readonly
-        self.plane = None if datum is None else LocalTangentPlane(datum)
-        self.problems: list[StoreProblem] = []
         self.objects = S3Objects(self.location, client or s3_client(endpoint_url))
         self.writes_fenced = 0
-        self._lock = threading.RLock()
-        self._index: dict[TileIndex, TileFileInfo] = {}
         self._etags: dict[TileIndex, str | None] = {}  # as last seen; None: seen absent
         self._marks: dict[TileIndex, dict[str, Mark]] = {}  # of the copy last seen
 
@@ -112,25 +101,10 @@ class S3Store:
     def url(self) -> str:
         return self.location.url
 
-    def close(self) -> None:
-        """Nothing to release (boto3's connections close with the process)."""
-
-    def __enter__(self) -> S3Store:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     # -- names ----------------------------------------------------------------------------
     def key_for(self, i: int, j: int) -> str:
         e = self.expect
         return self.location.key(tile_file_name(e.map_name, e.resolution, e.tile_size, i, j))
-
-    def header_for(self, i: int, j: int, layers: Sequence[str],
-                   stamp: float, decay: dict[str, float] | None = None,
-                   applied: dict[str, Mark] | None = None, version: int = 0) -> TileHeader:
-        """The header this store writes for tile ``(i, j)``."""
-        return tile_header(self.expect, i, j, layers, stamp, self.plane, decay, applied, version)
 
     # -- index ----------------------------------------------------------------------------
     def index(self) -> dict[TileIndex, TileFileInfo]:
@@ -172,32 +146,7 @@ class S3Store:
             self._marks[header.index] = marks_of(header)
         return TileFileInfo(header, self.location.where(key), size)
 
-    def indexed(self) -> dict[TileIndex, TileFileInfo]:
-        """The index as last listed and updated by writes (no request)."""
-        with self._lock:
-            return dict(self._index)
-
-    def __contains__(self, index: object) -> bool:
-        with self._lock:
-            return index in self._index
-
     # -- reading --------------------------------------------------------------------------
-    def read_bytes(self, i: int, j: int) -> bytes | None:
-        """The validated bytes of tile ``(i, j)`` (for ``tiles/<i>/<j>`` replies)."""
-        got = self._read_valid(i, j)
-        return None if got is None else got[0]
-
-    def load(self, i: int, j: int) -> StoredTile | None:
-        """Tile ``(i, j)``, or None when absent or rejected (then quarantined).  Errors of
-        the object store itself propagate: answering None would start an empty tile."""
-        got = self._read_valid(i, j)
-        return None if got is None else got[1]
-
-    def loader(self, i: int, j: int) -> LoaderResult | None:
-        """:meth:`load` in the shape of :data:`sogm_service.core.map.tiletypes.Loader`."""
-        tile = self.load(i, j)
-        return None if tile is None else tile.as_loader_result()
-
     def _read_valid(self, i: int, j: int) -> tuple[bytes, StoredTile] | None:
         key = self.key_for(i, j)
         got = self.objects.get(key)
@@ -220,19 +169,7 @@ class S3Store:
         return blob, tile
 
     # -- writing --------------------------------------------------------------------------
-    def write(self, i: int, j: int, layers: Sequence[str], data: Fixed,
-              stamp: float, decay: dict[str, float] | None = None,
-              applied: dict[str, Mark] | None = None, version: int = 0) -> TileFileInfo:
-        """Encode and store one tile, fenced (module docstring); StoreConflictError when a
-        newer copy is stored."""
-        header = self.header_for(i, j, layers, stamp, decay, applied, version)
-        return self._put(header, tile_to_bytes(header, data, self.level))
-
-    def write_bytes(self, blob: bytes) -> TileFileInfo:
-        """Validate a tile received from elsewhere (an import) and store it as is, fenced."""
-        return self._put(tile_from_bytes(blob, self.expect).header, blob)
-
-    def _put(self, header: TileHeader, blob: bytes) -> TileFileInfo:
+    def _store(self, header: TileHeader, blob: bytes) -> TileFileInfo:
         if self.readonly:
             raise PermissionError(f"store {self.url} was opened read-only")
         index, key, ours = header.index, self.key_for(header.i, header.j), marks_of(header)
