@@ -47,7 +47,8 @@ def add_parser(subparsers: Any) -> None:
                    help="directory for the two files")
     p.add_argument("--name", default="map", help="file stem")
     p.add_argument("--layers", default=None, metavar="A,B",
-                   help="comma-separated layers (default: all)")
+                   help="comma-separated layers or class patterns, e.g. '*/laser/obstacle' "
+                        "(a pattern's layers fused by the Bayesian rule; default: all)")
     p.add_argument("--method", choices=["max", "bayes"], default="max",
                    help="Eq. 6 pooling of the layers: max (a cell is occupied when a layer "
                         "that observed it says so, free when those say free, unknown when "
