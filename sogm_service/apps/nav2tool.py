@@ -3,7 +3,7 @@
 export nav2 --out DIR writes map.yaml + map.pgm exactly as nav2's map_server reads them
 (trinary) from a running server's fused map (Eq. 6 over the chosen layers, max by default);
 with --keepout and --speed also nav2's costmap filter masks (keepout_mask, speed_mask: the
-rules of the live ROS 2 masks, :mod:`sogm_service.adapters.ros2.filters`).
+rules of the live ROS 2 masks, in sogm_service.adapters.ros2.filters).
 import nav2 map.yaml --layer NAME fuses such a map into a running server as a prior ISM (in
 blocks small enough for the server's ISM limits).  Both talk to the server as any client does,
 and both need the ros2 extra (pyyaml), imported only when the command runs.
