@@ -3,10 +3,12 @@ share, as if each ran on a host of its own.
 
 Each member is a ``sogm-service serve`` with ``[cluster] enabled`` in a cgroup of its own whose
 CPU quota is the cap (``cpu.max`` of cgroup v2, or ``cpu.cfs_quota_us`` of the v1 ``cpu``
-controller), placed right after it starts so its every thread is under it.  The Zenoh router
-and the publisher stand outside the caps, for the network and the fleet.  The publisher (a
-process of its own, ``python -m sogm_service.bench.cluster_scale publish``) puts 256x256
-aligned ``prob_u8`` ISMs each inside one tile of a 16 x 16 tile area as fast as the router
+controller), placed right after it starts so its every thread is under it; its CPU time is
+read from its cgroup (v2 ``cpu.stat``, v1 a twin group under ``cpuacct``).  The Zenoh router
+and the publisher stand outside the caps (in a group of the same weight without a quota), for
+the network and the fleet.  The publisher (a process of its own, ``python -m
+sogm_service.bench.cluster_scale publish``) puts 252x252 aligned ``prob_u8`` ISMs, each
+inside one tile of a 16 x 16 tile area, as fast as the router
 takes them (BLOCK): more than the cluster fuses, so the members' pace is the measure.  The rate
 is the ISMs every member has handled (``isms_fused`` of each member's ``stats``, asked under
 its member key) per second over a window after a warm-up: an ISM counts once all its owners
