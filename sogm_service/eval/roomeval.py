@@ -55,10 +55,11 @@ SEEDS_GRID: tuple[Params, ...] = tuple(
 SEEDS_QUICK: tuple[Params, ...] = ({"levels": 4, "prior": 0, "bins": 3},)
 SEVDS_VARIANTS: dict[str, SevdsParams] = {
     "SEVDS (defaults)": SevdsParams(),
-    "SEVDS (paper rule)": SevdsParams(criterion="distribution"),
+    "SEVDS (no doorway term)": SevdsParams(doorway=0.0),
+    "SEVDS (paper rule)": SevdsParams(criterion="distribution", doorway=0.0),
     "SEVDS (no extent bound)": SevdsParams(extent=64.0),
     "SEVDS (paper rule, gamma 0.01, bins 5, levels 3, no bound)": SevdsParams(
-        levels=3, bins=5, gamma=0.01, criterion="distribution", extent=64.0),
+        levels=3, bins=5, gamma=0.01, criterion="distribution", extent=64.0, doorway=0.0),
 }
 
 

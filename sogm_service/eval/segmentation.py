@@ -98,8 +98,10 @@ def _to_u8(stack: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
 
 def _run_sevds(criterion: str) -> Callable[[npt.NDArray[np.float32], int, Params], Labels]:
     def run(stack: npt.NDArray[np.float32], block: int, p: Params) -> Labels:
+        # The paper's rule runs as the paper has it, without the default's doorway term.
         params = SevdsParams(block_size=block, levels=3, bins=int(p["bins"]), iterations=4,
-                             gamma=float(p["gamma"]), criterion=criterion)  # type: ignore[arg-type]
+                             gamma=float(p["gamma"]), criterion=criterion,  # type: ignore[arg-type]
+                             doorway=SevdsParams().doorway if criterion == "energy" else 0.0)
         return sevds(stack, params).labels
     return run
 

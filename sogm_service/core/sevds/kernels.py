@@ -106,12 +106,17 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
            s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
            dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
            centres: npt.NDArray[np.float64], gamma: float, energy: bool, reverse: bool,
-           cols: int, block: int, margin: int) -> int:
+           cols: int, block: int, margin: int, door: npt.NDArray[np.uint8],
+           w_door: float) -> int:
     """One raster sweep of unit moves on the unit grid ``ul`` (units of ``s`` x ``s`` cells).
 
     A unit may join supercell c only inside c's box: its initial ``block`` x ``block`` square
     (row ``c // cols``, column ``c % cols`` of the initial grid) grown by ``margin`` cells on
     every side, so no supercell ever spans more than ``block + 2 margin`` cells either way.
+
+    At the cell level (``s == 1``) every doorway-line edge (``door``: bit 1 the edge down, bit 2
+    the edge right, :mod:`sogm_service.core.sevds.doorways`) inside a supercell adds ``w_door``
+    to the energy, so a move that puts a boundary on the line gains ``w_door`` per edge.
 
     Per supercell: count, sums of x and x^2 per layer, perimeter, D' and the K-bin histograms,
     all updated in place.  Single cells (``s == 1``) take their moments from their bin index
@@ -122,6 +127,8 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
     moves = 0
     nb_lab = np.empty(4, dtype=np.int32)
     nb_w = np.empty(4, dtype=np.float64)
+    nb_door = np.zeros(4, dtype=np.float64)  # 1.0 where the edge to neighbour r is a doorway's
+    doors = s == 1 and w_door > 0.0
     x1 = np.empty(nl)  # the unit's sums of x and x^2 per layer
     x2 = np.empty(nl)
     for ii in range(hu):
@@ -173,7 +180,15 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
             # d_a and d_b are D' of a without and b with the unit: after the move they are
             # exactly what D' recomputed from the updated moments gives (same operations on
             # the same values), so the move stores them instead of recomputing.
-            d_a, lose = 0.0, 0.0
+            d_a, lose, door_a = 0.0, 0.0, 0.0
+            if doors:  # doorway edges up, right, down, left; door_a: those kept inside a
+                nb_door[0] = 1.0 if i > 0 and (door[i - 1, j] & 1) != 0 else 0.0
+                nb_door[1] = 1.0 if (door[i, j] & 2) != 0 else 0.0
+                nb_door[2] = 1.0 if (door[i, j] & 1) != 0 else 0.0
+                nb_door[3] = 1.0 if j > 0 and (door[i, j - 1] & 2) != 0 else 0.0
+                for r in range(4):
+                    if nb_lab[r] == a:
+                        door_a += nb_door[r]
             if energy:  # the loser's part of the energy change is the same for every b
                 inv = 1.0 / (cnt[a] - u)
                 for n in range(nl):
@@ -202,11 +217,17 @@ def _sweep(ul: npt.NDArray[np.int32], uc: npt.NDArray[np.float64],
                     # Paper: H(c_hat) - H(c) of the receiver; Eq. 7, G = perimeter / area.
                     g_new = (perim[c] + p_unit - 2.0 * e_c) / (cnt[c] + u)
                     sc = d_new - dval[c] + gamma * (g_new - perim[c] / cnt[c])
+                if doors:  # doorway edges inside c after the move, less those inside a now
+                    for r2 in range(4):
+                        if nb_lab[r2] == c:
+                            sc += w_door * nb_door[r2]
+                    sc -= w_door * door_a
                 if sc < best:
                     best, b, d_b = sc, c, d_new
             # The constraints come after the (cheaper, usually negative) search.  The paper's
-            # corner case: a supercell of zero total variance may not shrink.
-            if b < 0 or (dval[a] < 1e-9 and _zero_variance(hist, a)):
+            # corner case, for its receiver-only rule: a supercell of zero total variance may
+            # not shrink (the energy rule judges the loser itself).
+            if b < 0 or (door_a == 0.0 and dval[a] < 1e-9 and _zero_variance(hist, a)):
                 continue
             # SEEDS's simple-point test: the 8-ring pattern of a's label, clockwise from the
             # top, looked up in _REMOVABLE.  Written out, not a helper taking ``ul``: an
@@ -307,13 +328,15 @@ def run(qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32],
          s2: npt.NDArray[np.float64], perim: npt.NDArray[np.float64],
          dval: npt.NDArray[np.float64], hist: npt.NDArray[np.int32],
          centres: npt.NDArray[np.float64], gamma: float, energy: bool, block: int,
-         margin: int) -> tuple[npt.NDArray[np.int32], int]:
+         margin: int, door: npt.NDArray[np.uint8],
+         w_door: float) -> tuple[npt.NDArray[np.int32], int]:
     """The whole schedule: ``sweeps[l]`` alternating sweeps of units of ``sizes[l]`` cells.
 
     Returns the cell labels and the number of moves; ``block`` and ``margin`` bound every
-    supercell's extent (:func:`_sweep`).  ``labels`` is updated in place when the
-    schedule is only cell level.  One call from Python, not one per sweep with the per-level
-    setup (unit grid, edge lengths, label expansion) in numpy around them.
+    supercell's extent and ``door`` / ``w_door`` reward doorway lines (:func:`_sweep`).
+    ``labels`` is updated in place when the schedule is only cell level.  One call from
+    Python, not one per sweep with the per-level setup (unit grid, edge lengths, label
+    expansion) in numpy around them.
     """
     h, w = labels.shape
     cols = -(-w // block)
@@ -338,7 +361,8 @@ def run(qt: npt.NDArray[np.uint8], labels: npt.NDArray[np.int32],
             cw[j] = min(s, w - s * j)
         for sweep in range(sweeps[lev]):
             moves += _sweep(ul, uc, m1, m2, rh, cw, qt, s, cnt, s1, s2, perim, dval, hist,
-                            centres, gamma, energy, sweep % 2 == 1, cols, block, margin)
+                            centres, gamma, energy, sweep % 2 == 1, cols, block, margin, door,
+                            w_door)
         if s > 1:
             labels = np.empty((h, w), np.int32)
             for v in range(h):
