@@ -113,14 +113,14 @@ class GeodeticFix(WireModel):
     altitude: FiniteFloat = 0.0
 
 
-class IsmMessage(WireModel):
-    """An inverse sensor model: one semantic class observed as a grid in its own pose.
+class IsmHeader(WireModel):
+    """The header of an ISM: every field of :class:`IsmMessage` but its cells.
 
-    ``layer`` may be omitted: the server then names the layer after the key's remainder
-    (``ism/robot1/laser/obstacle`` -> ``robot1/laser/obstacle``).
+    Validated on its own where only the header matters: a cluster member that owns none of an
+    ISM's tiles checks the header and leaves the cells (their decompression and value checks)
+    to the owners.  The fields and their checks are the message's own (it extends this).
     """
 
-    schema_name: ClassVar[str] = "ism"
     layer: StrictStr | None = None
     frame: StrictStr = "map"
     stamp: WireFloat = 0.0
@@ -130,8 +130,6 @@ class IsmMessage(WireModel):
     width: StrictInt
     height: StrictInt
     encoding: Annotated[IsmEncoding, Field(description=ENCODING_DESCRIPTION)]
-    data: StrictBytes
-    compression: Annotated[Compression | None, Field(description=COMPRESSION_DESCRIPTION)] = None
 
     @field_validator("resolution")
     @classmethod
@@ -152,13 +150,30 @@ class IsmMessage(WireModel):
         return v
 
     @_model_validator(mode="after")
-    def _check_data(self, info: ValidationInfo) -> IsmMessage:
+    def _check_cells(self, info: ValidationInfo) -> IsmHeader:
         limits = info.context or {}
         max_cells = int(limits.get("max_cells", MAX_ISM_CELLS))
         cells = self.width * self.height
         if cells > max_cells:
             raise PydanticCustomError("too_large", "{cells} cells exceed the limit of {limit}",
                                       {"cells": cells, "limit": max_cells})
+        return self
+
+
+class IsmMessage(IsmHeader):
+    """An inverse sensor model: one semantic class observed as a grid in its own pose.
+
+    ``layer`` may be omitted: the server then names the layer after the key's remainder
+    (``ism/robot1/laser/obstacle`` -> ``robot1/laser/obstacle``).
+    """
+
+    schema_name: ClassVar[str] = "ism"
+    data: StrictBytes
+    compression: Annotated[Compression | None, Field(description=COMPRESSION_DESCRIPTION)] = None
+
+    @_model_validator(mode="after")
+    def _check_data(self, info: ValidationInfo) -> IsmMessage:
+        cells = self.width * self.height  # within the limit: the header's check ran first
         itemsize = ENCODING_DTYPES[Encoding(self.encoding)].itemsize
         if self.compression is not None:
             self._decompress(cells * itemsize)

@@ -24,6 +24,7 @@ from sogm_service.wire.messages import (
     ErrorReply,
     GeodeticFix,
     IsmAck,
+    IsmHeader,
     IsmMessage,
     MatchReport,
     PoseMessage,
@@ -435,3 +436,19 @@ def test_wire_accepts_every_prob_u8_v2_code_and_nan_but_not_infinity() -> None:
         with pytest.raises(DecodeError) as info:
             codec.decode(IsmMessage, ism_payload(np.array([bad], np.float32), "prob_f32"))
         assert info.value.code == code
+
+
+def test_an_ism_header_is_checked_alone_and_leaves_the_cells_alone() -> None:
+    """IsmHeader: the message's own header checks, with the same codes, and none of the cells
+    (what a cluster member that owns none of an ISM's tiles reads)."""
+    garbage = ism_fields(data=b"not a zstd frame", compression="zstd")
+    reject(IsmMessage, pack(garbage), "bad_compression")
+    header = codec.decode(IsmHeader, pack(garbage))
+    assert (header.width, header.height, header.encoding) == (3, 2, "occupancy_i8")
+    assert not hasattr(header, "data")
+    reject(IsmHeader, pack(ism_fields(resolution=0.0)), "non_positive_resolution")
+    reject(IsmHeader, pack(ism_fields(width=0)), "invalid_value")
+    reject(IsmHeader, pack(ism_fields(width=100_000, height=100_000, data=b"")), "too_large")
+    reject(IsmHeader, pack(ism_fields(origin={"x": math.nan})), "non_finite")
+    # every field of the header is the message's, with the same type
+    assert set(IsmHeader.model_fields) == set(IsmMessage.model_fields) - {"data", "compression"}
