@@ -103,9 +103,12 @@ class GridGeometry:
         return np.stack([x, y], axis=-1)
 
     def centre(self) -> tuple[float, float]:
-        """Parent-frame ``(x, y)`` of the grid's centre."""
-        c = self.cell_to_world()[:2] @ np.array([(self.width - 1) / 2, (self.height - 1) / 2, 1.0])
-        return (float(c[0]), float(c[1]))
+        """Parent-frame ``(x, y)`` of the grid's centre (plain floats, no arrays: every ISM
+        header asks, a cluster member's for every ISM it only checks)."""
+        lx, ly = 0.5 * self.width * self.resolution, 0.5 * self.height * self.resolution
+        o = self.origin
+        c, s = math.cos(o.yaw), math.sin(o.yaw)
+        return (o.x + c * lx - s * ly, o.y + s * lx + c * ly)
 
     def corners(self) -> npt.NDArray[np.float64]:
         """``(4, 2)`` parent-frame corners of the grid's outer boundary."""

@@ -36,7 +36,7 @@ from sogm_service.core.map.tiletypes import TileIndex
 from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server.stats import Stats
 from sogm_service.wire.errors import BusyError, IsmRejectedError, QueryError
-from sogm_service.wire.messages import IsmMessage
+from sogm_service.wire.messages import IsmHeader, IsmMessage
 from sogm_service.wire.queries import SupercellRequest, TilesChangedRequest, WindowRequest
 
 if TYPE_CHECKING:
@@ -98,7 +98,7 @@ class Admission:
             f"{now:.14g}; its layer (half-life {half_life:.4g} s) keeps nothing older than "
             f"{limit:.4g} s (stamps: Unix time in s)", "stamp")
 
-    def footprint(self, msg: IsmMessage) -> fp.Footprint:
+    def footprint(self, msg: IsmHeader) -> fp.Footprint:
         """The ISM's footprint from its header: ``out_of_world`` or ``too_large`` refused."""
         o = msg.origin
         bounds = fp.grid_bounds(msg.resolution, msg.width, msg.height, o.x, o.y, o.yaw)

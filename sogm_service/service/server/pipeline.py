@@ -48,7 +48,7 @@ from sogm_service.wire import codec
 from sogm_service.wire.errors import IsmRejectedError, SogmError
 from sogm_service.wire.keys import key_remainder, robot_of_ism_key
 from sogm_service.wire.limits import LAYER_NAME_PATTERN
-from sogm_service.wire.messages import IsmMessage
+from sogm_service.wire.messages import IsmHeader, IsmMessage
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ class PreparedIsm:
     geometry: GridGeometry
 
 
-def layer_name(msg: IsmMessage, key: str, key_expr: str) -> str:
+def layer_name(msg: IsmHeader, key: str, key_expr: str) -> str:
     """The ISM's layer: its ``layer`` field, else the key's remainder after the literal prefix."""
     name = msg.layer or key_remainder(key, key_expr)
     if not _LAYER_NAME.match(name):
@@ -100,12 +100,12 @@ def check_robot(named: str | None, by_key: str) -> None:
                                                  f"a key of robot {by_key[:64]!r}", "robot")
 
 
-def ism_geometry(msg: IsmMessage) -> GridGeometry:
+def ism_geometry(msg: IsmHeader) -> GridGeometry:
     return GridGeometry(msg.resolution, msg.width, msg.height,
                         Pose2D(msg.origin.x, msg.origin.y, msg.origin.yaw))
 
 
-def check_frame(msg: IsmMessage, frame: str) -> None:
+def check_frame(msg: IsmHeader, frame: str) -> None:
     if msg.frame != frame:
         raise IsmRejectedError("wrong_frame",
                                f"ISM frame {msg.frame!r} is not the map frame {frame!r}", "frame")
@@ -154,9 +154,9 @@ class IngestPipeline:
         workers; a refusal at any step is counted with its reason and changes nothing."""
         started = time.perf_counter()
         try:
-            msg = self.decode(item)
-            if self.owns_none is not None and self._elsewhere(item, msg):
-                return
+            msg = self.decode(item) if self.owns_none is None else self._decode_owned(item)
+            if msg is None:
+                return  # another member's to fuse: its header is checked and followed
             ism = self.prepare(item, msg)
             reserved = self.admission.check_ism(msg, ism.layer, msg.robot, self.tiled,
                                                 self.fleet)
@@ -184,7 +184,19 @@ class IngestPipeline:
             self.admission.release(reserved)
             raise
 
-    def _elsewhere(self, item: IsmItem, msg: IsmMessage) -> bool:
+    def _decode_owned(self, item: IsmItem) -> IsmMessage | None:
+        """A cluster member decodes the header first and the cells (their decompression and
+        value checks) only when it owns one of the ISM's tiles: the others' work is the
+        header's.  None when the ISM is another member's."""
+        if item.msg is not None:
+            return None if self._elsewhere(item, item.msg) else item.msg
+        fields = codec.unpack(item.payload)
+        context = {"max_cells": self.config.limits.max_ism_cells}
+        if self._elsewhere(item, codec.validate(IsmHeader, fields, context)):
+            return None
+        return codec.validate(IsmMessage, fields, context)
+
+    def _elsewhere(self, item: IsmItem, msg: IsmHeader) -> bool:
         """A cluster member that owns none of the ISM's tiles only checks its header and
         follows its robot: the increments and the fuse are other members' work."""
         assert self.owns_none is not None
@@ -212,7 +224,7 @@ class IngestPipeline:
         return codec.decode(IsmMessage, item.payload,
                             context={"max_cells": self.config.limits.max_ism_cells})
 
-    def identify(self, item: IsmItem, msg: IsmMessage) -> str:
+    def identify(self, item: IsmItem, msg: IsmHeader) -> str:
         """The ISM's layer, once its robot is checked against its key's."""
         source = self.config.ism[item.source]
         if item.msg is not None:  # decoded by its adapter
