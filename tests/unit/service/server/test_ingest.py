@@ -41,6 +41,26 @@ def test_a_full_lossless_queue_makes_callbacks_wait_and_counts_them() -> None:
     assert q.depth() == 0
 
 
+def test_a_waiting_callback_is_let_in_once_half_the_queue_is_taken() -> None:
+    """Not one ISM at a time: a busy server's queue is full all the time, and waking a
+    callback for every ISM taken costs a thread switch per ISM."""
+    q = IngestQueue(8, "lossless", Stats())
+    for k in range(8):
+        assert q.put(IsmItem(0, f"ism/{k}", b"x"))
+    put = threading.Thread(target=q.put, args=(IsmItem(0, "ism/late", b"x"),))
+    put.start()
+    while q.waiting_max < 1:
+        threading.Event().wait(0.01)
+    for taken in range(1, 5):
+        assert q.get(timeout=5) is not None
+        put.join(0.3 if taken < 4 else 5)
+        # still waiting until the worker has taken half (8 - 4 = 4 left), then in at once
+        assert put.is_alive() == (taken < 4), taken
+    assert q.depth() == 5
+    keys = [item.key for item in iter(lambda: q.get(timeout=0.1), None)]
+    assert keys == ["ism/4", "ism/5", "ism/6", "ism/7", "ism/late"]  # arrival order kept
+
+
 def test_a_queue_with_room_counts_no_push_back() -> None:
     stats = Stats()
     q = IngestQueue(4, "lossless", stats)
