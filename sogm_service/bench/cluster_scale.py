@@ -8,12 +8,13 @@ read from its cgroup (v2 ``cpu.stat``, v1 a twin group under ``cpuacct``).  The 
 and the publisher stand outside the caps (in a group of the same weight without a quota), for
 the network and the fleet.  The publisher (a process of its own, ``python -m
 sogm_service.bench.cluster_scale publish``) puts 252x252 aligned ``prob_u8`` ISMs, each
-inside one tile of a 16 x 16 tile area, as fast as the router
-takes them (BLOCK): more than the cluster fuses, so the members' pace is the measure.  The rate
-is the ISMs every member has handled (``isms_fused`` of each member's ``stats``, asked under
-its member key) per second over a window after a warm-up: an ISM counts once all its owners
-have fused it and the others have checked its header.  Without a cgroup CPU controller the row
-runs uncapped and says so.
+inside one tile of a 16 x 16 tile area, zstd-compressed as :class:`~sogm_service.client.mapclient.MapClient` sends them by
+default, as fast as the router takes them (BLOCK): more than the cluster fuses, so the
+members' pace is the measure.  The rate is a batch's size over the time until every member
+has handled it (``isms_fused`` of each member's ``stats``, asked over a session connected to
+that member alone), after a warm-up batch: an ISM counts once all its owners have fused it
+and the others have checked its header (:func:`measure`).  Without a cgroup CPU controller
+the row runs uncapped and says so.
 """
 
 from __future__ import annotations
@@ -51,6 +52,12 @@ gets, not only a ceiling, while other work runs on the machine."""
 TILES = 16  # the publisher's area, in tiles a side
 SPAN = 256 * RES  # a tile's side in metres
 ISM_CELLS = 252  # an ISM's side: inside one tile (see payloads)
+WARM_ISMS = 3 * TILES * TILES
+"""The warm-up batch: every tile of the area three times (created, then updated)."""
+BATCH = 5000
+"""ISMs per member in a measured batch (about 5-10 s at the rates measured here)."""
+BATCH_QUICK = 1000
+POLL_S = 0.05  # how often the members are asked whether they have handled a batch
 
 
 # -- cgroups ----------------------------------------------------------------------------------
@@ -196,28 +203,71 @@ def _cpu_s(pid: int) -> float:
     return total / 1e9
 
 
-def _handled(client: MapClient, ids: dict[str, tuple[int, str]], caps: CpuCaps
-             ) -> dict[str, tuple[int, int, float]]:
-    """Each member's (``isms_fused``, ``cluster_isms_elsewhere``), asked under its own key,
-    and the CPU seconds it has used (its cgroup's count, else its threads')."""
+def _counters(direct: dict[str, MapClient]) -> dict[str, tuple[int, int]]:
+    """Each member's (``isms_fused``, ``cluster_isms_elsewhere``), asked under its own key over
+    a session connected to it alone."""
     import msgpack
 
     out = {}
-    for member, (pid, name) in ids.items():
-        used = caps.usage_s(name)
+    for member, client in direct.items():
         key = MapKeys(client.prefix, client.map_name).member(member, "stats")
         got = msgpack.unpackb(client.get_raw(key, {}, timeout=10.0))
         counters = got["counters"]
         out[member] = (int(counters.get("isms_fused", 0)),
-                       int(counters.get("cluster_isms_elsewhere", 0)),
-                       _cpu_s(pid) if used is None else used)
+                       int(counters.get("cluster_isms_elsewhere", 0)))
     return out
 
 
-def measure(members: int, replicas: int, caps: CpuCaps, warm_s: float, window_s: float
+def _cpu(caps: CpuCaps, ids: dict[str, tuple[int, str]]) -> list[float]:
+    """CPU seconds each member has used (its cgroup's count, else its threads')."""
+    out = []
+    for pid, name in ids.values():
+        used = caps.usage_s(name)
+        out.append(_cpu_s(pid) if used is None else used)
+    return out
+
+
+@contextmanager
+def _direct_clients(endpoints: dict[str, str]) -> Iterator[dict[str, MapClient]]:
+    """A client session connected to each member's own endpoint: its stats come back at once
+    even while the ISMs from the router queue up (a queue that pushes back holds that link,
+    and a query sent through the router waits behind the ISMs for seconds)."""
+    how = transport.current()
+    clients: dict[str, MapClient] = {}
+    try:
+        for member, endpoint in endpoints.items():
+            clients[member] = MapClient(open_session(how.client(endpoint)))
+        yield clients
+    finally:
+        for client in clients.values():
+            client.close()
+
+
+def _handled_by_all(direct: dict[str, MapClient], count: int, timeout: float) -> float:
+    """Poll until every member has handled ``count`` ISMs; the time it was first seen."""
+    deadline = time.monotonic() + timeout
+    while True:
+        now = time.monotonic()
+        if min(fused for fused, _ in _counters(direct).values()) >= count:
+            return now
+        if now > deadline:
+            raise RuntimeError(f"cluster_scale: the members did not handle {count} ISMs "
+                               f"within {timeout:g} s")
+        time.sleep(POLL_S)
+
+
+def measure(members: int, replicas: int, caps: CpuCaps, batch_per_member: int
             ) -> dict[str, Any]:
     """The cluster's ISMs per second with ``members`` capped members, and each member's share
-    of the ISMs it fused (not just checked)."""
+    of the ISMs it fused (not just checked).
+
+    A warm-up batch (every tile created, every code path run) is handled by every member
+    first; then a batch of ``batch_per_member`` ISMs per member is published as fast as the
+    members take it (BLOCK), and the rate is its size over the time from its
+    first put until every member has handled it (an ISM counts once all its owners have
+    fused it and the others have checked its header).  Both ends have empty queues, so no
+    ISM buffered in a queue or a socket is counted or missed.  The members are asked over a
+    session connected to each alone: through the router a query waits behind the ISMs."""
     how = transport.current()
     with tempfile.TemporaryDirectory(prefix="sogm-bench-scale-") as tmp:
         d = Path(tmp)
@@ -231,45 +281,48 @@ def measure(members: int, replicas: int, caps: CpuCaps, warm_s: float, window_s:
             started = [_start_member(d, f"member{k}", router_ep, min(replicas, members))
                        for k in range(members)]  # start side by side
             procs += [proc for proc, _ in started]
-            ids = {}
+            ids, endpoints = {}, {}
             for k, (proc, endpoint) in enumerate(started):
                 wait_listening(endpoint, 60.0, _ended(proc), proc.tail)
                 caps.place(f"member{k}", proc.pid)  # capped before any ISM is offered
-                ids[_server_id(proc)] = (proc.pid, f"member{k}")
+                member = _server_id(proc)
+                ids[member] = (proc.pid, f"member{k}")
+                endpoints[member] = endpoint
             pub = Proc([PY, "-m", "sogm_service.bench.cluster_scale", "publish", "--connect",
                         router_ep, "--key", how.ism_key("obstacle"), *how.client_args()],
                        d / "publisher.log", stdin=True)
             procs.append(pub)
             caps.place("feeders", pub.pid, capped=False)
             pub.expect("ready", 60.0)
-            with MapClient(open_session(how.client(router_ep))) as client:
+            with MapClient(open_session(how.client(router_ep))) as client, \
+                    _direct_clients(endpoints) as direct:
                 deadline = time.monotonic() + 60
                 while len(client.servers(timeout=1.0)) < members and \
                         time.monotonic() < deadline:
                     time.sleep(0.1)
                 time.sleep(1.0)  # the members' own handovers settle
-                pub.send(f"{warm_s + window_s + 2.0}")
-                time.sleep(warm_s)
-                t0, before = time.monotonic(), _handled(client, ids, caps)
-                time.sleep(window_s)
-                t1, after = time.monotonic(), _handled(client, ids, caps)
-                sent = int(pub.expect("sent", 60.0 + warm_s + window_s)[0])
+                pub.send(str(WARM_ISMS))
+                _handled_by_all(direct, WARM_ISMS, 120.0)
+                batch = batch_per_member * members
+                before, cpu0, t0 = _counters(direct), _cpu(caps, ids), time.monotonic()
+                pub.send(str(batch))
+                t1 = _handled_by_all(direct, WARM_ISMS + batch, 60.0 + batch / 20.0)
+                after, cpu1 = _counters(direct), _cpu(caps, ids)
         finally:
             for proc in reversed(procs):
                 proc.stop()
     dt = t1 - t0
-    done = min(after[m][0] - before[m][0] for m in ids)
-    own = [(after[m][0] - before[m][0]) - (after[m][1] - before[m][1]) for m in ids]
     other = [after[m][1] - before[m][1] for m in ids]
-    cpu = [after[m][2] - before[m][2] for m in ids]
-    return {"rate": done / dt, "owned_share_min": min(own) / max(1, sum(own)),
-            "owned_share_max": max(own) / max(1, sum(own)), "fused_copies": sum(own) / dt,
-            "sent": float(sent), "cpu_per_member": sum(cpu) / len(cpu) / dt,
-            "samples": [(o, e, c) for o, e, c in zip(own, other, cpu, strict=True)]}
+    own = [(after[m][0] - before[m][0]) - e for m, e in zip(ids, other, strict=True)]
+    cpu = [b - a for a, b in zip(cpu0, cpu1, strict=True)]
+    return {"rate": batch / dt, "owned_share_min": min(own) / max(1, sum(own)),
+            "owned_share_max": max(own) / max(1, sum(own)), "sent": float(batch),
+            "cpu_per_member": sum(cpu) / len(cpu) / dt,
+            "samples": list(zip(own, other, cpu, strict=True))}
 
 
 def cluster_scale(quick: bool) -> Row:
-    warm_s, window_s, rounds = (1.0, 1.5, 1) if quick else (2.0, 6.0, 2)
+    per_member, rounds = (BATCH_QUICK, 1) if quick else (BATCH, 3)
     # --quick (the test suite's smoke run) runs 1 and 2 members, replicas 1
     configs = [(1, 1), (2, 1)] + ([] if quick else [(3, 1), (2, 2), (3, 2)])
     runs: dict[tuple[int, int], list[dict[str, Any]]] = {c: [] for c in configs}
@@ -277,7 +330,7 @@ def cluster_scale(quick: bool) -> Row:
     with cpu_caps(CAP_CPU) as caps:
         for _ in range(rounds):  # interleaved: load changes hit every configuration alike
             for n, r in configs:
-                runs[(n, r)].append(measure(n, r, caps, warm_s, window_s))
+                runs[(n, r)].append(measure(n, r, caps, per_member))
         cap = caps.describe()
         capped = caps.available
     load1 = os.getloadavg()[0]
@@ -304,10 +357,10 @@ def cluster_scale(quick: bool) -> Row:
                ">= 1.6x with 2 members, >= 2.2x with 3 (replicas 1)", passed,
                f"one cluster member held to {CAP_CPU:g} CPU",
                f"{cap}; router and publisher uncapped; {ISM_CELLS}x{ISM_CELLS} aligned ISMs, each "
-               f"inside one of "
-               f"{TILES}x{TILES} tiles, offered faster than fused (BLOCK); rate = ISMs every "
-               f"member handled per s over {window_s:g} s after {warm_s:g} s, median of "
-               f"{rounds}; replicas 1: 1/2 members {one:.0f}/{rate[(2, 1)]:.0f} ISM/s "
+               f"inside one of {TILES}x{TILES} tiles, zstd as MapClient sends them, offered "
+               f"faster than fused (BLOCK); rate = a batch of {per_member} ISMs per member over "
+               f"the time until every member handled it, after {WARM_ISMS} ISMs of warm-up, "
+               f"median of {rounds}; replicas 1: 1/2 members {one:.0f}/{rate[(2, 1)]:.0f} ISM/s "
                f"({s[(2, 1)]:.2f}x); {three}; share of the fused ISMs per member {shares}; "
                f"a member's CPU {fused_s * 1e6:.0f} us per ISM it fuses, "
                f"{checked_s * 1e6:.0f} us per ISM it only checks (fitted); CPU per member 1/2: "
@@ -346,13 +399,13 @@ def payloads() -> list[bytes]:
         i, j = tile % TILES, tile // TILES
         inset = (256 - ISM_CELLS) / 2 * RES
         msg = ism_message(codes[k % 4], RES, Pose2D(i * SPAN + inset, j * SPAN + inset, 0.0))
-        out.append(codec.encode(msg.model_copy(update={"stamp": float(k)})))
+        out.append(codec.encode(msg.model_copy(update={"stamp": float(k)}).compressed()))
     return out
 
 
 def run_publisher(argv: list[str]) -> int:
-    """Every ``SECONDS`` line on stdin: put the ISMs in turn as fast as the link takes them
-    (BLOCK) for that long, then print ``sent <count>``."""
+    """Every ``COUNT`` line on stdin: put that many ISMs, the area's in turn, as fast as the
+    link takes them (BLOCK)."""
     import zenoh
 
     from sogm_service.bench.procs import _stop_event, _transport
@@ -369,14 +422,15 @@ def run_publisher(argv: list[str]) -> int:
         pub = session.declare_publisher(args.key,
                                         congestion_control=zenoh.CongestionControl.BLOCK)
         print("ready", flush=True)
+        n = 0
         for line in sys.stdin:
             if stop.is_set() or not line.strip():
                 break
-            t_end, n = time.time() + float(line), 0
-            while time.time() < t_end and not stop.is_set():
+            for _ in range(int(line)):
+                if stop.is_set():
+                    break
                 pub.put(data[n % len(data)])
                 n += 1
-            print(f"sent {n}", flush=True)
         pub.undeclare()
     finally:
         session.close()

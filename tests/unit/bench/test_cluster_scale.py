@@ -20,6 +20,7 @@ def test_every_ism_lies_in_one_tile_and_every_tile_gets_one() -> None:
     lattice = TileLattice(cluster_scale.RES, 256)
     tiles = []
     for payload in cluster_scale.payloads():
+        assert codec.unpack(payload)["compression"] == "zstd"  # as MapClient sends ISMs
         msg = codec.decode(IsmMessage, payload)
         touched = lattice.tiles_overlapping(ism_geometry(msg))
         assert len(touched) == 1, (msg.origin, touched)
