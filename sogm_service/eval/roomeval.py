@@ -10,9 +10,9 @@ Part of ``sogm-service eval supercells`` (:mod:`sogm_service.eval.segmentation` 
    own block grid, so it is asked for the count whose result lies nearest SEVDS's
    (:func:`seeds_request`).  SEEDS keeps the set of its parameter grid with the lowest scene mean
    of ``(1 - BR) + UE``; SEVDS runs with the defaults of the ``supercells`` query (no tuning),
-   the paper's rule (``criterion = "distribution"``), the default without the extent bound
-   (``extent = 64``) and the paper's rule at gamma 0.01 with 5 bins, 3 levels and no bound next
-   to it.
+   the default without the doorway term (``doorway = 0``), the paper's rule (``criterion =
+   "distribution"``, no doorway term), the default without the extent bound (``extent = 64``)
+   and the paper's rule at gamma 0.01 with 5 bins, 3 levels and no bound next to it.
 3. **Compactness** of every label image (:func:`compactness`): the widest span of a segment in
    block sizes, the largest segment, the most neighbours, segments in more than one piece, and
    nodes (the cell nearest each centroid, :mod:`sogm_service.core.sevds.supercells`) or bare
