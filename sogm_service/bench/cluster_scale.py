@@ -8,12 +8,13 @@ read from its cgroup (v2 ``cpu.stat``, v1 a twin group under ``cpuacct``).  The 
 and the publisher stand outside the caps (in a group of the same weight without a quota), for
 the network and the fleet.  The publisher (a process of its own, ``python -m
 sogm_service.bench.cluster_scale publish``) puts 252x252 aligned ``prob_u8`` ISMs, each
-inside one tile of a 16 x 16 tile area, zstd-compressed as :class:`~sogm_service.client.mapclient.MapClient` sends them by
-default, as fast as the router takes them (BLOCK): more than the cluster fuses, so the
-members' pace is the measure.  The rate is a batch's size over the time until every member
-has handled it (``isms_fused`` of each member's ``stats``, asked over a session connected to
-that member alone), after a warm-up batch: an ISM counts once all its owners have fused it
-and the others have checked its header (:func:`measure`).  Without a cgroup CPU controller
+inside one tile of a 16 x 16 tile area, zstd-compressed as
+:class:`~sogm_service.client.mapclient.MapClient` sends them by default, as fast as the router
+takes them (BLOCK): more than the cluster fuses, so the members' pace is the measure.  The
+rate is a batch's size over the time until every member has handled it (``isms_fused`` of
+each member's ``stats``, asked over a session connected to that member alone), after a
+warm-up batch: an ISM counts once all its owners have fused it and the others have checked
+its header (:func:`measure`).  Without a cgroup CPU controller
 the row runs uncapped and says so.
 """
 
