@@ -58,13 +58,18 @@ def declared_size(data: bytes) -> int:
     return int(size)
 
 
-def decompress(data: bytes, expected: int) -> bytes:
-    """The frame's content, which must be exactly ``expected`` bytes (checked from the frame's
-    header before anything is allocated); one frame, nothing after it."""
+def check_declared_size(data: bytes, expected: int) -> None:
+    """``data`` is a zstd frame that declares exactly ``expected`` bytes (its header alone)."""
     size = declared_size(data)
     if size != expected:
         raise DecodeError("data_length", f"the zstd frame holds {size} bytes; {expected} "
                           "expected", "data")
+
+
+def decompress(data: bytes, expected: int) -> bytes:
+    """The frame's content, which must be exactly ``expected`` bytes (checked from the frame's
+    header before anything is allocated); one frame, nothing after it."""
+    check_declared_size(data, expected)
     return _one_frame(data, expected)
 
 

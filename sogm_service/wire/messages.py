@@ -116,9 +116,8 @@ class GeodeticFix(WireModel):
 class IsmHeader(WireModel):
     """The header of an ISM: every field of :class:`IsmMessage` but its cells.
 
-    Validated on its own where only the header matters: a cluster member that owns none of an
-    ISM's tiles checks the header and leaves the cells (their decompression and value checks)
-    to the owners.  The fields and their checks are the message's own (it extends this).
+    What every step that reads only the header takes (the footprint, the frame, the geometry,
+    the layer name).  The fields and their checks are the message's own (it extends this).
     """
 
     layer: StrictStr | None = None
@@ -173,9 +172,17 @@ class IsmMessage(IsmHeader):
 
     @_model_validator(mode="after")
     def _check_data(self, info: ValidationInfo) -> IsmMessage:
+        """The cells: their length, or the zstd frame's declared size and content, and their
+        values.  With ``framing_only`` in the context a zstd frame is checked from its header
+        alone and kept as sent (``compression`` stays set, the cells are not readable): what a
+        cluster member that owns none of the ISM's tiles checks, leaving the decompression to
+        the owners.  Raw cells are checked whole either way (it costs little)."""
         cells = self.width * self.height  # within the limit: the header's check ran first
         itemsize = ENCODING_DTYPES[Encoding(self.encoding)].itemsize
         if self.compression is not None:
+            if (info.context or {}).get("framing_only"):
+                self._check_frame(cells * itemsize)
+                return self
             self._decompress(cells * itemsize)
         if len(self.data) != cells * itemsize:
             raise PydanticCustomError(
@@ -185,6 +192,12 @@ class IsmMessage(IsmHeader):
                  "enc": self.encoding, "expected": cells * itemsize})
         _check_cell_values(self.array(), self.encoding)
         return self
+
+    def _check_frame(self, expected: int) -> None:
+        try:
+            zstd.check_declared_size(self.data, expected)
+        except DecodeError as exc:
+            raise PydanticCustomError(exc.code, exc.message) from None
 
     def _decompress(self, expected: int) -> None:
         """Replace zstd ``data`` by the raw cells: only a frame that declares exactly the size

@@ -185,16 +185,18 @@ class IngestPipeline:
             raise
 
     def _decode_owned(self, item: IsmItem) -> IsmMessage | None:
-        """A cluster member decodes the header first and the cells (their decompression and
-        value checks) only when it owns one of the ISM's tiles: the others' work is the
-        header's.  None when the ISM is another member's."""
+        """A cluster member checks a zstd ISM's frame from its header and decompresses it only
+        when it owns one of the ISM's tiles: the decompression and the cells' value checks
+        are the owners' work (raw cells are checked whole by every member).  None when the
+        ISM is another member's."""
         if item.msg is not None:
             return None if self._elsewhere(item, item.msg) else item.msg
         fields = codec.unpack(item.payload)
         context = {"max_cells": self.config.limits.max_ism_cells}
-        if self._elsewhere(item, codec.validate(IsmHeader, fields, context)):
+        sent = codec.validate(IsmMessage, fields, {**context, "framing_only": True})
+        if self._elsewhere(item, sent):
             return None
-        return codec.validate(IsmMessage, fields, context)
+        return sent if sent.compression is None else codec.validate(IsmMessage, fields, context)
 
     def _elsewhere(self, item: IsmItem, msg: IsmHeader) -> bool:
         """A cluster member that owns none of the ISM's tiles only checks its header and

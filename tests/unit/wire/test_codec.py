@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from pydantic import BaseModel
 
 from sogm_service.wire import codec, limits
+from sogm_service.wire import compression as zstd
 from sogm_service.wire.codec import SCHEMA_MODELS, DecodeError
 from sogm_service.wire.errors import DECODE_CODES
 from sogm_service.wire.messages import (
@@ -438,17 +439,24 @@ def test_wire_accepts_every_prob_u8_v2_code_and_nan_but_not_infinity() -> None:
         assert info.value.code == code
 
 
-def test_an_ism_header_is_checked_alone_and_leaves_the_cells_alone() -> None:
-    """IsmHeader: the message's own header checks, with the same codes, and none of the cells
-    (what a cluster member that owns none of an ISM's tiles reads)."""
-    garbage = ism_fields(data=b"not a zstd frame", compression="zstd")
-    reject(IsmMessage, pack(garbage), "bad_compression")
-    header = codec.decode(IsmHeader, pack(garbage))
-    assert (header.width, header.height, header.encoding) == (3, 2, "occupancy_i8")
-    assert not hasattr(header, "data")
-    reject(IsmHeader, pack(ism_fields(resolution=0.0)), "non_positive_resolution")
-    reject(IsmHeader, pack(ism_fields(width=0)), "invalid_value")
-    reject(IsmHeader, pack(ism_fields(width=100_000, height=100_000, data=b"")), "too_large")
-    reject(IsmHeader, pack(ism_fields(origin={"x": math.nan})), "non_finite")
-    # every field of the header is the message's, with the same type
+def test_framing_only_checks_a_zstd_frame_from_its_header_and_keeps_it() -> None:
+    """``framing_only``: what a cluster member that owns none of an ISM's tiles checks.  A
+    frame that declares the right size is kept as sent, undecompressed; its content is the
+    full check's.  A wrong declared size, a frame that is not zstd and raw cells are refused
+    alike in both."""
+    cells = np.array([0, 50, 100, -1, 7, 93], np.int8).tobytes()
+    framing = {"framing_only": True}
+    cut_short = zstd.compress(cells)[:-3]
+    sent = codec.decode(IsmMessage, pack(ism_fields(data=cut_short, compression="zstd")),
+                        context=framing)
+    assert sent.compression == "zstd" and sent.data == cut_short
+    reject(IsmMessage, pack(ism_fields(data=cut_short, compression="zstd")), "bad_compression")
+    for context in (framing, None):
+        reject(IsmMessage, pack(ism_fields(data=zstd.compress(cells + b"\0"),
+                                           compression="zstd")), "data_length", context)
+        reject(IsmMessage, pack(ism_fields(data=b"not a zstd frame", compression="zstd")),
+               "bad_compression", context)
+        reject(IsmMessage, pack(ism_fields(data=cells[:-1])), "data_length", context)
+        reject(IsmMessage, pack(ism_fields(data=np.array([101] * 6, np.int8).tobytes())),
+               "out_of_range", context)
     assert set(IsmHeader.model_fields) == set(IsmMessage.model_fields) - {"data", "compression"}

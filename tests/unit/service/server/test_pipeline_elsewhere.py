@@ -1,5 +1,6 @@
-"""A cluster member's ingestion of an ISM whose tiles it does not own: the header is checked
-and the robot followed, the cells (decompression, value checks, increments) are the owners'."""
+"""A cluster member's ingestion of an ISM whose tiles it does not own: the header and the cells'
+framing are checked and the robot followed; a zstd frame's decompression, the values inside it
+and the increments are the owners'."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from sogm_service.service.config import ServiceConfig
 from sogm_service.service.server.pipeline import IngestPipeline, IsmItem
 from sogm_service.service.server.server import MapServer
 from sogm_service.wire import codec
+from sogm_service.wire import compression as zstd
 from sogm_service.wire.messages import IsmMessage, PoseModel
 
 
@@ -36,17 +38,34 @@ def _rejected(p: IngestPipeline) -> dict[str, int]:
     return dict(p.stats.rejected)
 
 
-def test_a_member_that_owns_none_of_the_tiles_leaves_the_cells_to_the_owners() -> None:
-    corrupt = _payload(_ism(), data=b"not a zstd frame", compression="zstd")
+def test_a_member_that_owns_none_of_the_tiles_leaves_the_decompression_to_the_owners() -> None:
+    ism = _ism()
+    cut_short = zstd.compress(ism.data)[:-3]  # declares the right size; its content is short
+    payload = _payload(ism, data=cut_short, compression="zstd")
     owner, other = _pipeline(owns=True), _pipeline(owns=False)
-    owner.handle(IsmItem(0, "ism/r1/obstacle", corrupt))
-    other.handle(IsmItem(0, "ism/r1/obstacle", corrupt))
+    owner.handle(IsmItem(0, "ism/r1/obstacle", payload))
+    other.handle(IsmItem(0, "ism/r1/obstacle", payload))
     assert _rejected(owner) == {"bad_compression": 1}
     assert not owner.tiled.known_tiles()
     got = _counters(other)
     assert got.get("cluster_isms_elsewhere") == 1 and not _rejected(other)
     assert other.tiled.now() == 5.0  # its clock follows the ISMs it only checks
     assert not other.tiled.known_tiles()
+
+
+def test_every_member_refuses_cells_whose_framing_is_wrong() -> None:
+    """What the header and a frame's header tell (the length, the declared size, not a zstd
+    frame at all) every member refuses alike, so any member's acknowledgement says so."""
+    ism = _ism()
+    bad = [_payload(ism, data=b"not a zstd frame", compression="zstd"),
+           _payload(ism, data=zstd.compress(ism.data + b"\0"), compression="zstd"),
+           _payload(ism, data=ism.data[:-1])]
+    for owns in (True, False):
+        p = _pipeline(owns)
+        for payload in bad:
+            p.handle(IsmItem(0, "ism/r1/obstacle", payload))
+        assert _rejected(p) == {"bad_compression": 1, "data_length": 2}, owns
+        assert "cluster_isms_elsewhere" not in _counters(p)
 
 
 def test_a_member_that_owns_none_still_refuses_a_bad_header() -> None:
