@@ -123,7 +123,11 @@ def test_a_member_resumed_after_the_others_took_over_never_overwrites_a_newer_ti
             s["counters"].get("isms_fused", 0) + s["counters"].get("cluster_isms_elsewhere", 0)
             >= N_ISMS for s in member_stats(robot).values()), 90)
         os.kill(a.proc.pid, signal.SIGSTOP)
-        try:  # the others see a leave after Zenoh's lease (10 s) and take its tiles over
+        try:  # the others see a leave after Zenoh's lease (10 s) and take its tiles over;
+            # a stopped member answers no stats, so wait for the view, not for two replies.
+            assert wait_until(lambda: all(
+                len(s["extra"]["cluster_members"]) == 2 for s in member_stats(robot).values()),
+                60)
             assert wait_until(lambda: fused_and_written(robot, 2, N_ISMS), 60)
             publish(robot, 2000.0, seed=12)  # newer ISMs over the whole area
             assert wait_until(lambda: fused_and_written(robot, 2, 2 * N_ISMS), 90), \
