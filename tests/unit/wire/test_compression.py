@@ -102,3 +102,33 @@ def test_threads_compress_at_once() -> None:
     for k, frames in enumerate(out):
         assert len(frames) == 100
         assert zstd.decompress(frames[-1], len(blobs[k])) == blobs[k]
+
+
+def test_threads_decompress_at_once_and_a_bad_frame_leaves_the_next_one_whole() -> None:
+    """Each thread reuses its own decompressor: a corrupt or cut frame refused on it does not
+    spoil the frames it decompresses next."""
+    import threading
+
+    blobs = [np.random.default_rng(k).integers(0, 4, 1 << 16, dtype=np.uint8).tobytes()
+             for k in range(4)]
+    frames = [zstd.compress(b) for b in blobs]
+    corrupt = bytearray(frames[0])
+    corrupt[len(corrupt) // 2:] = bytes(len(corrupt) - len(corrupt) // 2)
+    codes: list[list[str]] = [[] for _ in blobs]
+    whole: list[bool] = [True for _ in blobs]
+
+    def work(k: int) -> None:
+        for bad in (bytes(corrupt), frames[k][:-5], frames[k] + frames[k]) * 30:
+            try:
+                zstd.decompress(bad, len(blobs[0]))
+            except DecodeError as exc:
+                codes[k].append(exc.code)
+            whole[k] &= zstd.decompress(frames[k], len(blobs[k])) == blobs[k]
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(len(blobs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(whole)
+    assert all(c == ["bad_compression"] * 90 for c in codes), codes
