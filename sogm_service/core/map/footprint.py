@@ -75,7 +75,7 @@ class WindowPrice:
 
 def finite(*values: float) -> bool:
     """Whether every value is a finite number."""
-    return all(math.isfinite(v) for v in values)
+    return all(map(math.isfinite, values))  # map: every ISM's header passes here
 
 
 def grid_bounds(resolution: float, width: int, height: int, x: float, y: float,
@@ -95,7 +95,8 @@ def grid_bounds(resolution: float, width: int, height: int, x: float, y: float,
 def in_world(bounds: Bounds, extent: float) -> bool:
     """Whether the box is finite and inside ``[-extent, extent]^2`` (NaN is never inside)."""
     xmin, ymin, xmax, ymax = bounds
-    return all(-extent <= v <= extent for v in (xmin, ymin, xmax, ymax))
+    return -extent <= xmin <= extent and -extent <= ymin <= extent \
+        and -extent <= xmax <= extent and -extent <= ymax <= extent
 
 
 def point_in_world(x: float, y: float, extent: float) -> bool:
@@ -117,7 +118,13 @@ def ism_footprint(resolution: float, width: int, height: int, x: float, y: float
                   map_resolution: float, tile_size: int) -> Footprint:
     """The footprint of an ISM header on the map's lattice.  Raises ``ValueError`` when the
     header's box is not finite (check :func:`in_world` on :func:`grid_bounds` first)."""
-    bounds = grid_bounds(resolution, width, height, x, y, yaw)
+    return bounds_footprint(grid_bounds(resolution, width, height, x, y, yaw), map_resolution,
+                            tile_size)
+
+
+def bounds_footprint(bounds: Bounds, map_resolution: float, tile_size: int) -> Footprint:
+    """The footprint of an ISM's metric box (:func:`grid_bounds`) on the map's lattice, for a
+    caller that has the box already (it checked it with :func:`in_world`)."""
     i0, j0, i1, j1 = tile_range(bounds, tile_size * map_resolution)
     xmin, ymin, xmax, ymax = bounds
     cols = math.floor(xmax / map_resolution) - math.floor(xmin / map_resolution) + 1

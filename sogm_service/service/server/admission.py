@@ -108,8 +108,7 @@ class Admission:
                 "out_of_world", f"the ISM spans x {bounds[0]:.6g}..{bounds[2]:.6g}, y "
                 f"{bounds[1]:.6g}..{bounds[3]:.6g} m; the world is +-{extent:g} m around the "
                 "map origin (check its origin and resolution)", "origin")
-        foot = fp.ism_footprint(msg.resolution, msg.width, msg.height, o.x, o.y, o.yaw,
-                                self.resolution, self.tile_size)
+        foot = fp.bounds_footprint(bounds, self.resolution, self.tile_size)
         if foot.tile_count > self.limits.max_ism_tiles:
             raise IsmRejectedError("too_large", f"the ISM covers {foot.tile_count} tiles "
                                    f"({foot.map_cells} map cells); the limit is "

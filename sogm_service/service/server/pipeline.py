@@ -53,6 +53,8 @@ from sogm_service.wire.messages import IsmHeader, IsmMessage
 log = logging.getLogger(__name__)
 
 _LAYER_NAME = re.compile(LAYER_NAME_PATTERN)
+NAMES_KEPT = 4096
+"""ISM keys whose robot and layer name the pipeline remembers (a fleet has a few per robot)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,6 +150,7 @@ class IngestPipeline:
         # A cluster member: whether it owns none of the tiles of a footprint's box (then the
         # ISM is another member's to fuse: no increments, no fuse).  Set by the server.
         self.owns_none: Callable[[tuple[int, int, int, int]], bool] | None = None
+        self._names: dict[tuple[int, str, str | None], tuple[str, str]] = {}
 
     def handle(self, item: IsmItem) -> None:
         """Decode, validate, prepare, check and align one ISM, then hand it to the fuse
@@ -233,8 +236,16 @@ class IngestPipeline:
             check_robot(msg.robot, item.robot or msg.robot or "")
             return layer_name(msg.model_copy(update={"layer": item.layer or msg.layer}),
                               item.key, source.key_expr)
-        check_robot(msg.robot, robot_of_ism_key(item.key, source.key_expr))
-        return layer_name(msg, item.key, source.key_expr)
+        named = (item.source, item.key, msg.layer)
+        known = self._names.get(named)
+        if known is None:  # each key's robot and layer once: every member sees every ISM
+            known = (robot_of_ism_key(item.key, source.key_expr),
+                     layer_name(msg, item.key, source.key_expr))
+            if len(self._names) >= NAMES_KEPT:
+                self._names.clear()  # keys are the publishers' to choose: kept bounded
+            self._names[named] = known
+        check_robot(msg.robot, known[0])
+        return known[1]
 
     def prepare(self, item: IsmItem, msg: IsmMessage) -> PreparedIsm:
         layer = self.identify(item, msg)
