@@ -3,12 +3,12 @@ share, as if each ran on a host of its own.
 
 Each member is a ``sogm-service serve`` with ``[cluster] enabled`` in a cgroup of its own whose
 CPU quota is the cap (``cpu.max`` of cgroup v2, or ``cpu.cfs_quota_us`` of the v1 ``cpu``
-controller), placed right after it starts so its every thread is under it; its CPU time is
-read from its cgroup (v2 ``cpu.stat``, v1 a twin group under ``cpuacct``).  The Zenoh router
+controller, :mod:`~sogm_service.bench.cgroups`), placed right after it starts so its every
+thread is under it; its CPU time is read from its cgroup.  The Zenoh router
 and the publisher stand outside the caps (in a group of the same weight without a quota), for
 the network and the fleet.  The publisher (a process of its own, ``python -m
 sogm_service.bench.cluster_scale publish``) puts 252x252 aligned ``prob_u8`` ISMs, each
-inside one tile of a 16 x 16 tile area, zstd-compressed as
+inside one tile of a 32 x 32 tile area, zstd-compressed as
 :class:`~sogm_service.client.mapclient.MapClient` sends them by default, as fast as the router
 takes them (BLOCK): more than the cluster fuses, so the members' pace is the measure.  The
 rate is a batch's size over the time until every member has handled it (``isms_fused`` of
@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from sogm_service.bench import transport
+from sogm_service.bench.cgroups import CpuCaps, cpu_caps
 from sogm_service.bench.cluster import RES, _server_id
 from sogm_service.bench.core import Row, median
 from sogm_service.bench.zbench import PY, Proc
@@ -43,14 +44,11 @@ from sogm_service.wire.keys import MapKeys
 CAP_CPU = 0.25
 """Each member's CPU share, in cores: 3 members (0.75 cores) leave the rest of this 2-core
 machine to the router and the publisher (with 0.4 each, 3 members got 0.16 of their 0.4)."""
-PERIOD_US = 10_000
-"""The quota's period: short, so a member's throttled stretches (at most 6 ms of 10) stay
-within what its ingestion queue absorbs; with 100 ms the members' stalls, out of phase, held
-the one publisher (BLOCK) and so every other member too."""
-WEIGHT = 10
-"""A bench group's CPU weight against a process outside them: the cap is a share the member
-gets, not only a ceiling, while other work runs on the machine."""
-TILES = 16  # the publisher's area, in tiles a side
+TILES = 32
+"""The publisher's area, in tiles a side: each member's share of the ISMs is its share of
+these tiles under the rendezvous ownership, a draw that varies with the members' ids; over
+1024 tiles the busiest of 3 members owns a median 35 % of them (36 % over 256), and the
+busiest paces the cluster."""
 SPAN = 256 * RES  # a tile's side in metres
 ISM_CELLS = 252  # an ISM's side: inside one tile (see payloads)
 WARM_ISMS = 3 * TILES * TILES
@@ -58,121 +56,10 @@ WARM_ISMS = 3 * TILES * TILES
 BATCH = 5000
 """ISMs per member in a measured batch (about 5-10 s at the rates measured here)."""
 BATCH_QUICK = 1000
+ROUNDS = 5
+"""Rounds of every configuration, interleaved; the row reports each one's median (members
+start afresh each round, so each round draws new ids and new ownership shares)."""
 POLL_S = 0.05  # how often the members are asked whether they have handled a batch
-
-
-# -- cgroups ----------------------------------------------------------------------------------
-class CpuCaps:
-    """One cgroup per member under ``sogm-bench-<pid>``, each with the same CPU quota; removed
-    by :meth:`close` (its processes moved back to the parent first, should any remain)."""
-
-    def __init__(self, cap: float) -> None:
-        self.cap = cap
-        self.kind, self.root = _controller()
-        self.base = self.root / f"sogm-bench-{os.getpid()}" if self.root else None
-        self.made: list[Path] = []
-        # v1 keeps CPU time in the cpuacct hierarchy: a twin group per member there
-        acct = Path("/sys/fs/cgroup/cpuacct")
-        self.acct = acct / self.base.name if self.kind == "v1" and self.base is not None \
-            and os.access(acct, os.W_OK) else None
-        if self.acct is not None:
-            self.acct.mkdir()
-        if self.base is not None:
-            self.base.mkdir()
-            self.made.append(self.base)
-            if self.kind == "v2":  # the members' groups need the cpu controller below base
-                (self.base / "cgroup.subtree_control").write_text("+cpu")
-
-    @property
-    def available(self) -> bool:
-        return self.base is not None
-
-    def describe(self) -> str:
-        if not self.available:
-            return "uncapped (no cgroup CPU controller here)"
-        what = "cpu.max" if self.kind == "v2" else "cpu.cfs_quota_us"
-        return (f"{self.cap:g} CPU per member (cgroup {self.kind} {what}, weight {WEIGHT}x a "
-                "process)")
-
-    def place(self, name: str, pid: int, capped: bool = True) -> None:
-        """Put process ``pid`` (all its threads) in group ``name``, made with the quota (or,
-        ``capped`` False, without).  Every group weighs ``WEIGHT`` times a plain process, so
-        that on a machine busy with other work a member still gets its whole cap."""
-        if self.base is None:
-            return
-        group = self.base / name
-        if group not in self.made:
-            group.mkdir()
-            self.made.append(group)
-            quota = int(self.cap * PERIOD_US)
-            if self.kind == "v2":
-                (group / "cpu.weight").write_text(str(100 * WEIGHT))
-                if capped:
-                    (group / "cpu.max").write_text(f"{quota} {PERIOD_US}")
-            else:
-                (group / "cpu.shares").write_text(str(1024 * WEIGHT))
-                if capped:
-                    (group / "cpu.cfs_period_us").write_text(str(PERIOD_US))
-                    (group / "cpu.cfs_quota_us").write_text(str(quota))
-        (group / "cgroup.procs").write_text(str(pid))
-        if self.acct is not None:
-            twin = self.acct / name
-            if twin not in self.made:
-                twin.mkdir()
-                self.made.append(twin)
-            (twin / "cgroup.procs").write_text(str(pid))
-
-    def usage_s(self, name: str) -> float | None:
-        """CPU seconds group ``name`` has used, every thread that ever ran in it included
-        (None without a cgroup)."""
-        if self.kind == "v2" and self.base is not None:
-            for line in (self.base / name / "cpu.stat").read_text().splitlines():
-                if line.startswith("usage_usec "):
-                    return int(line.split()[1]) / 1e6
-        if self.acct is not None:
-            return int((self.acct / name / "cpuacct.usage").read_text()) / 1e9
-        return None
-
-    def close(self) -> None:
-        for group in reversed(self.made):
-            top = self.root if self.acct is None or not group.is_relative_to(self.acct) \
-                else self.acct.parent
-            try:
-                for pid in (group / "cgroup.procs").read_text().split():
-                    (top / "cgroup.procs").write_text(pid)  # type: ignore[operator]
-                group.rmdir()
-            except OSError:
-                pass
-        self.made.clear()
-        if self.acct is not None:
-            with suppress(OSError):
-                self.acct.rmdir()
-
-
-def _controller() -> tuple[str, Path | None]:
-    """Where this machine's cgroup CPU controller is mounted: v2, else v1's ``cpu``."""
-    v2 = Path("/sys/fs/cgroup")
-    try:
-        if "cpu" in (v2 / "cgroup.controllers").read_text().split() \
-                and os.access(v2, os.W_OK):
-            if "cpu" not in (v2 / "cgroup.subtree_control").read_text().split():
-                (v2 / "cgroup.subtree_control").write_text("+cpu")
-            return "v2", v2
-    except OSError:
-        pass
-    v1 = Path("/sys/fs/cgroup/cpu")
-    if (v1 / "cpu.cfs_quota_us").exists() and os.access(v1, os.W_OK):
-        return "v1", v1
-    return "", None
-
-
-@contextmanager
-def cpu_caps(cap: float) -> Iterator[CpuCaps]:
-    caps = CpuCaps(cap)
-    try:
-        yield caps
-    finally:
-        caps.close()
 
 
 # -- one measurement --------------------------------------------------------------------------
@@ -323,7 +210,7 @@ def measure(members: int, replicas: int, caps: CpuCaps, batch_per_member: int
 
 
 def cluster_scale(quick: bool) -> Row:
-    per_member, rounds = (BATCH_QUICK, 1) if quick else (BATCH, 3)
+    per_member, rounds = (BATCH_QUICK, 1) if quick else (BATCH, ROUNDS)
     # --quick (the test suite's smoke run) runs 1 and 2 members, replicas 1
     configs = [(1, 1), (2, 1)] + ([] if quick else [(3, 1), (2, 2), (3, 2)])
     runs: dict[tuple[int, int], list[dict[str, Any]]] = {c: [] for c in configs}
@@ -351,6 +238,9 @@ def cluster_scale(quick: bool) -> Row:
     three = "3 members and replicas 2 not run (--quick)" if quick else (
         f"3 members {rate[(3, 1)]:.0f} ISM/s ({s[(3, 1)]:.2f}x); replicas 2: 2/3 members "
         f"{rate[(2, 2)]:.0f}/{rate[(3, 2)]:.0f} ISM/s ({s[(2, 2)]:.2f}x, {s[(3, 2)]:.2f}x)")
+    per_round = "; ".join(f"{n} members replicas {r}: "
+                          + "/".join(f"{m['rate']:.0f}" for m in runs[(n, r)])
+                          for n, r in configs)
     shares = ", ".join(f"{n}: {runs[(n, 1)][-1]['owned_share_min']:.2f}-"
                        f"{runs[(n, 1)][-1]['owned_share_max']:.2f}"
                        for n in (2, 3) if (n, 1) in runs)
@@ -365,12 +255,13 @@ def cluster_scale(quick: bool) -> Row:
                f"({s[(2, 1)]:.2f}x); {three}; share of the fused ISMs per member {shares}; "
                f"a member's CPU {fused_s * 1e6:.0f} us per ISM it fuses, "
                f"{checked_s * 1e6:.0f} us per ISM it only checks (fitted); CPU per member 1/2: "
-               f"{cpu[(1, 1)]:.2f}/{cpu[(2, 1)]:.2f}; load average "
+               f"{cpu[(1, 1)]:.2f}/{cpu[(2, 1)]:.2f}; ISM/s per round: {per_round}; load average "
                f"{load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores",
                {"speedup_2": s[(2, 1)], **details, "cap": cap,
                 "cap_cpu": CAP_CPU if capped else 0.0, "rate_1": one, "rate_2": rate[(2, 1)],
                 "cpu_us_per_fused_ism": fused_s * 1e6, "cpu_us_per_checked_ism": checked_s * 1e6,
                 "cpu_per_member_1": cpu[(1, 1)], "cpu_per_member_2": cpu[(2, 1)],
+                "rates_per_round": per_round,
                 "load_start": load0, "load_end": load1})
 
 
@@ -396,7 +287,7 @@ def payloads() -> list[bytes]:
     codes = [synthetic_ism(ISM_CELLS, s) for s in range(4)]
     out = []
     for k in range(TILES * TILES):
-        tile = (k * 97) % (TILES * TILES)  # 97 is prime to 256: every tile once
+        tile = (k * 97) % (TILES * TILES)  # 97 is odd, the count a power of 2: each tile once
         i, j = tile % TILES, tile // TILES
         inset = (256 - ISM_CELLS) / 2 * RES
         msg = ism_message(codes[k % 4], RES, Pose2D(i * SPAN + inset, j * SPAN + inset, 0.0))

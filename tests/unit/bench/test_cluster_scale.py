@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from sogm_service.bench import cluster_scale
+from sogm_service.bench import cgroups, cluster_scale
 from sogm_service.core.geometry import TileLattice
 from sogm_service.service.server.pipeline import ism_geometry
 from sogm_service.wire import codec
@@ -42,22 +42,22 @@ def test_costs_recover_what_fused_and_checked_isms_cost() -> None:
 
 
 def test_caps_hold_a_process_under_its_quota_and_are_removed() -> None:
-    kind, root = cluster_scale._controller()
+    kind, root = cgroups._controller()
     if root is None:
         pytest.skip("no writable cgroup CPU controller on this machine")
     child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     try:
-        with cluster_scale.cpu_caps(0.3) as caps:
+        with cgroups.cpu_caps(0.3) as caps:
             caps.place("member0", child.pid)
             assert caps.base is not None
             group = caps.base / "member0"
             assert str(child.pid) in (group / "cgroup.procs").read_text().split()
             if kind == "v2":
                 assert (group / "cpu.max").read_text().split() == [
-                    str(int(0.3 * cluster_scale.PERIOD_US)), str(cluster_scale.PERIOD_US)]
+                    str(int(0.3 * cgroups.PERIOD_US)), str(cgroups.PERIOD_US)]
             else:
                 assert int((group / "cpu.cfs_quota_us").read_text()) == \
-                    int(0.3 * cluster_scale.PERIOD_US)
+                    int(0.3 * cgroups.PERIOD_US)
             assert "0.3 CPU per member" in caps.describe()
             made = [caps.base, *([caps.acct] if caps.acct is not None else [])]
         for base in made:  # removed, the child moved back to the hierarchy's root first
