@@ -39,6 +39,7 @@ from sogm_service.bench.core import Row, median
 from sogm_service.bench.zbench import PY, Proc
 from sogm_service.client.mapclient import MapClient
 from sogm_service.client.session import open_session, wait_listening
+from sogm_service.wire.errors import ClientError
 from sogm_service.wire.keys import MapKeys
 
 CAP_CPU = 0.25
@@ -91,19 +92,44 @@ def _cpu_s(pid: int) -> float:
     return total / 1e9
 
 
-def _counters(direct: dict[str, MapClient]) -> dict[str, tuple[int, int]]:
-    """Each member's (``isms_fused``, ``cluster_isms_elsewhere``), asked under its own key over
-    a session connected to it alone."""
+def _stats(client: MapClient, member: str, timeout: float = 10.0) -> dict[str, Any]:
+    """Member ``member``'s ``stats``, asked under its own key over ``client`` (a session
+    connected to that member alone)."""
     import msgpack
 
+    key = MapKeys(client.prefix, client.map_name).member(member, "stats")
+    got: dict[str, Any] = msgpack.unpackb(client.get_raw(key, {}, timeout=timeout))
+    return got
+
+
+def _counters(direct: dict[str, MapClient]) -> dict[str, tuple[int, int]]:
+    """Each member's (``isms_fused``, ``cluster_isms_elsewhere``)."""
     out = {}
     for member, client in direct.items():
-        key = MapKeys(client.prefix, client.map_name).member(member, "stats")
-        got = msgpack.unpackb(client.get_raw(key, {}, timeout=10.0))
-        counters = got["counters"]
+        counters = _stats(client, member)["counters"]
         out[member] = (int(counters.get("isms_fused", 0)),
                        int(counters.get("cluster_isms_elsewhere", 0)))
     return out
+
+
+def _kernels_ready(direct: dict[str, MapClient], timeout: float) -> None:
+    """Wait until every member has its supercell kernels ready.  Each member compiles or
+    loads them in a child process at start (in its cgroup: 1 s of CPU from the cache, 10 s
+    when it compiles); offered ISMs meanwhile, a member shares its cap with that child, and a
+    member starved that way (its Zenoh link kept alive by the same capped threads) was seen
+    losing the warm-up batch.  A member whose queryables a fresh session does not know yet
+    does not answer: asked again."""
+    deadline = time.monotonic() + timeout
+    waiting = set(direct)
+    while waiting:
+        for member in sorted(waiting):
+            with suppress(ClientError):
+                if _stats(direct[member], member, timeout=2.0)["extra"].get("kernels_ready"):
+                    waiting.discard(member)
+        if waiting and time.monotonic() > deadline:
+            raise RuntimeError(f"cluster_scale: {len(waiting)} member(s) without their "
+                               f"kernels after {timeout:g} s")
+        time.sleep(POLL_S if waiting else 0.0)
 
 
 def _cpu(caps: CpuCaps, ids: dict[str, tuple[int, str]]) -> list[float]:
@@ -188,6 +214,7 @@ def measure(members: int, replicas: int, caps: CpuCaps, batch_per_member: int
                 while len(client.servers(timeout=1.0)) < members and \
                         time.monotonic() < deadline:
                     time.sleep(0.1)
+                _kernels_ready(direct, 180.0)
                 time.sleep(1.0)  # the members' own handovers settle
                 pub.send(str(WARM_ISMS))
                 _handled_by_all(direct, WARM_ISMS, 120.0)
