@@ -12,8 +12,9 @@ inside one tile of a 32 x 32 tile area, zstd-compressed as
 :class:`~sogm_service.client.mapclient.MapClient` sends them by default, as fast as the router
 takes them (BLOCK): more than the cluster fuses, so the members' pace is the measure.  The
 rate is a batch's size over the time until every member has handled it (``isms_fused`` of
-each member's ``stats``, asked over a session connected to that member alone), after a
-warm-up batch: an ISM counts once all its owners have fused it and the others have checked
+each member's ``stats``, asked over a session connected to that member alone), after every
+member reports its supercell kernels ready (:func:`_kernels_ready`) and after a warm-up
+batch: an ISM counts once all its owners have fused it and the others have checked
 its header (:func:`measure`).  Without a cgroup CPU controller
 the row runs uncapped and says so.
 """
@@ -116,9 +117,9 @@ def _kernels_ready(direct: dict[str, MapClient], timeout: float) -> None:
     """Wait until every member has its supercell kernels ready.  Each member compiles or
     loads them in a child process at start (in its cgroup: 1 s of CPU from the cache, 10 s
     when it compiles); offered ISMs meanwhile, a member shares its cap with that child, and a
-    member starved that way (its Zenoh link kept alive by the same capped threads) was seen
-    losing the warm-up batch.  A member whose queryables a fresh session does not know yet
-    does not answer: asked again."""
+    member starved that way was seen never handling the warm-up batch the publisher had put.
+    A member whose queryables a fresh session does not know yet does not answer: asked
+    again."""
     deadline = time.monotonic() + timeout
     waiting = set(direct)
     while waiting:
