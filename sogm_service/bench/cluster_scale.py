@@ -122,15 +122,17 @@ def _kernels_ready(direct: dict[str, MapClient], timeout: float) -> None:
     again."""
     deadline = time.monotonic() + timeout
     waiting = set(direct)
-    while waiting:
+    while True:
         for member in sorted(waiting):
             with suppress(ClientError):
                 if _stats(direct[member], member, timeout=2.0)["extra"].get("kernels_ready"):
                     waiting.discard(member)
-        if waiting and time.monotonic() > deadline:
+        if not waiting:
+            return
+        if time.monotonic() > deadline:
             raise RuntimeError(f"cluster_scale: {len(waiting)} member(s) without their "
                                f"kernels after {timeout:g} s")
-        time.sleep(POLL_S if waiting else 0.0)
+        time.sleep(POLL_S)
 
 
 def _cpu(caps: CpuCaps, ids: dict[str, tuple[int, str]]) -> list[float]:
